@@ -1,0 +1,1 @@
+"""detcal calibration library: numpy + scipy only."""

@@ -1,0 +1,104 @@
+"""Input validation shared by the library: every error names the argument and the reason."""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+
+
+def as_float_array(name: str, value: object, ndim: int | None = None) -> np.ndarray:
+    """Return `value` as a finite float64 array, or raise a ValueError naming `name`.
+
+    `ndim`, when given, is the required number of dimensions.
+    """
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be numeric: {exc}") from None
+    if ndim is not None and arr.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+    check_finite(name, arr)
+    return arr
+
+
+def check_finite(name: str, arr: np.ndarray) -> None:
+    """Raise a ValueError naming the first non-finite entry of `arr`."""
+    if arr.dtype.kind not in "fc":
+        return
+    bad = ~np.isfinite(arr)
+    if bad.any():
+        where = tuple(int(i) for i in np.argwhere(bad)[0])
+        value = arr[where]
+        kind = "NaN" if np.isnan(value) else "Inf"
+        loc = where[0] if len(where) == 1 else list(where)
+        raise ValueError(f"{name} has {kind} at index {loc}")
+
+
+def as_int_array(name: str, value: object, ndim: int = 1) -> np.ndarray:
+    """Return `value` as an int64 array of `ndim` dimensions; floats must be whole numbers."""
+    arr = np.asarray(value)
+    if arr.ndim != ndim:
+        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+    if arr.size and arr.dtype.kind == "f":
+        check_finite(name, arr)
+        if not np.all(arr == np.round(arr)):
+            raise ValueError(f"{name} must hold integers")
+    elif arr.size and arr.dtype.kind not in "iub":
+        raise ValueError(f"{name} must hold integers, got dtype {arr.dtype}")
+    return arr.astype(np.int64)
+
+
+def check_length(name: str, arr: np.ndarray, n: int, other: str) -> None:
+    """Raise unless `arr` has `n` rows, the row count of `other`."""
+    if arr.shape[0] != n:
+        raise ValueError(f"{name} has {arr.shape[0]} rows but {other} has {n}")
+
+
+def check_index(name: str, arr: np.ndarray, upper: int, what: str) -> None:
+    """Raise unless every entry of `arr` is in [0, upper)."""
+    if arr.size == 0:
+        return
+    bad = (arr < 0) | (arr >= upper)
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(f"{name}[{i}] = {int(arr[i])} is out of range for {upper} {what}")
+
+
+def check_probabilities(name: str, arr: np.ndarray) -> None:
+    """Raise unless every entry of `arr` is in [0, 1]."""
+    bad = (arr < 0.0) | (arr > 1.0)
+    if bad.any():
+        i = int(np.argmax(bad.reshape(-1)))
+        value = arr.reshape(-1)[i]
+        raise ValueError(f"{name} must be probabilities in [0, 1]; entry {i} is {value}")
+
+
+def check_covariances(name: str, cov: np.ndarray, n: int | None = None, dim: int | None = None,
+                      tol: float = 1e-9) -> None:
+    """Raise unless `cov` is `[N, D, D]`, symmetric and positive semi-definite."""
+    if cov.ndim != 3 or cov.shape[1] != cov.shape[2]:
+        raise ValueError(f"{name} must have shape [N, D, D], got {cov.shape}")
+    if n is not None and cov.shape[0] != n:
+        raise ValueError(f"{name} has {cov.shape[0]} matrices but {n} were expected")
+    if dim is not None and cov.shape[1] != dim:
+        raise ValueError(f"{name} must be {dim}x{dim}, got {cov.shape[1]}x{cov.shape[2]}")
+    check_finite(name, cov)
+    if cov.shape[0] == 0:
+        return
+    scale = np.maximum(np.abs(cov).max(axis=(1, 2)), 1.0)
+    asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2)) > tol * scale
+    if asym.any():
+        raise ValueError(f"{name}[{int(np.argmax(asym))}] is not symmetric")
+    eig_min = np.linalg.eigvalsh(cov)[:, 0]
+    bad = eig_min < -tol * scale
+    if bad.any():
+        i = int(np.argmax(bad))
+        raise ValueError(
+            f"{name}[{i}] is not positive semi-definite (smallest eigenvalue {eig_min[i]:.3g})")
+
+
+def check_choice(name: str, value: str, choices: Sequence[str]) -> None:
+    """Raise unless `value` is one of `choices`."""
+    if value not in choices:
+        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")

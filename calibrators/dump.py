@@ -1,0 +1,186 @@
+"""The validation dump: detections of many frames plus the ground truth of the same frames.
+
+This is the in-memory form of validation dump v1 (docs/formats.md). Constructing a `Dump`
+validates it; every error names the key. Shapes:
+
+    classes          [C]          class names in logit column order
+    score_mode       str          "sigmoid" or "softmax"
+    frame_ids        [F]  str     frame (sample) tokens
+    det_frame        [N]  int     index into frame_ids
+    det_logits       [N, L, C']   raw logits per decoder layer, last = final;
+                                  C' = C (sigmoid) or C + 1 (softmax, last = no-object)
+    det_boxes        [N, L, 9]    x y z w l h yaw vx vy per layer, last = final
+    gt_frame         [G]  int     index into frame_ids
+    gt_labels        [G]  int     index into classes
+    gt_boxes         [G, 9]       same layout as det_boxes
+    ego_translation  [F, 3] | None  ego position per frame; None = boxes are ego-frame
+    det_cov          [N, D, D] | None  box covariance over cov_dims
+    cov_dims         [D]  str     default ("x", "y")
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from functools import cached_property
+
+import numpy as np
+
+from calibrators._checks import (
+    as_float_array,
+    as_int_array,
+    check_choice,
+    check_covariances,
+    check_index,
+    check_length,
+)
+from calibrators.scores import SCORE_MODES, predict
+
+BOX_FIELDS = ("x", "y", "z", "w", "l", "h", "yaw", "vx", "vy")
+
+
+@dataclass(frozen=True, eq=False)
+class Dump:
+    """A validated validation dump (see the module docstring for every field's shape)."""
+
+    classes: tuple[str, ...]
+    score_mode: str
+    frame_ids: np.ndarray
+    det_frame: np.ndarray
+    det_logits: np.ndarray
+    det_boxes: np.ndarray
+    gt_frame: np.ndarray
+    gt_labels: np.ndarray
+    gt_boxes: np.ndarray
+    ego_translation: np.ndarray | None = None
+    det_cov: np.ndarray | None = None
+    cov_dims: tuple[str, ...] = field(default=("x", "y"))
+
+    def __post_init__(self) -> None:
+        set_ = object.__setattr__
+        classes = tuple(str(c) for c in np.asarray(self.classes).reshape(-1).tolist())
+        if not classes:
+            raise ValueError("classes must name at least one class")
+        if len(set(classes)) != len(classes):
+            raise ValueError("classes has duplicate names")
+        set_(self, "classes", classes)
+        check_choice("score_mode", str(self.score_mode), SCORE_MODES)
+        set_(self, "score_mode", str(self.score_mode))
+        frame_ids = np.asarray(self.frame_ids).astype(str).reshape(-1)
+        if len(set(frame_ids.tolist())) != len(frame_ids):
+            raise ValueError("frame_ids has duplicate tokens")
+        set_(self, "frame_ids", frame_ids)
+        n_frames = len(frame_ids)
+
+        logits = as_float_array("det_logits", self.det_logits, ndim=3)
+        n, n_layers, width = logits.shape
+        want = len(classes) + (1 if self.score_mode == "softmax" else 0)
+        if width != want:
+            raise ValueError(f"det_logits has {width} columns but {self.score_mode} mode with "
+                             f"{len(classes)} classes needs {want}")
+        if n_layers < 1:
+            raise ValueError("det_logits must have at least one decoder layer (L >= 1)")
+        boxes = as_float_array("det_boxes", self.det_boxes, ndim=3)
+        if boxes.shape != (n, n_layers, 9):
+            raise ValueError(f"det_boxes must have shape [{n}, {n_layers}, 9], got {boxes.shape}")
+        det_frame = as_int_array("det_frame", self.det_frame)
+        check_length("det_frame", det_frame, n, "det_logits")
+        check_index("det_frame", det_frame, n_frames, "frames")
+
+        gt_boxes = as_float_array("gt_boxes", self.gt_boxes, ndim=2)
+        if gt_boxes.shape[1:] != (9,):
+            raise ValueError(f"gt_boxes must have shape [G, 9], got {gt_boxes.shape}")
+        gt_frame = as_int_array("gt_frame", self.gt_frame)
+        gt_labels = as_int_array("gt_labels", self.gt_labels)
+        check_length("gt_frame", gt_frame, len(gt_boxes), "gt_boxes")
+        check_length("gt_labels", gt_labels, len(gt_boxes), "gt_boxes")
+        check_index("gt_frame", gt_frame, n_frames, "frames")
+        check_index("gt_labels", gt_labels, len(classes), "classes")
+
+        for name, value in (("det_logits", logits), ("det_boxes", boxes), ("det_frame", det_frame),
+                            ("gt_boxes", gt_boxes), ("gt_frame", gt_frame),
+                            ("gt_labels", gt_labels)):
+            set_(self, name, value)
+
+        if self.ego_translation is not None:
+            ego = as_float_array("ego_translation", self.ego_translation, ndim=2)
+            if ego.shape != (n_frames, 3):
+                raise ValueError(f"ego_translation must have shape [{n_frames}, 3], "
+                                 f"got {ego.shape}")
+            set_(self, "ego_translation", ego)
+        cov_dims = tuple(str(d) for d in np.asarray(self.cov_dims).reshape(-1).tolist())
+        for d in cov_dims:
+            check_choice("cov_dims", d, BOX_FIELDS)
+        if len(set(cov_dims)) != len(cov_dims) or not cov_dims:
+            raise ValueError("cov_dims must name distinct box fields")
+        set_(self, "cov_dims", cov_dims)
+        if self.det_cov is not None:
+            cov = as_float_array("det_cov", self.det_cov, ndim=3)
+            check_covariances("det_cov", cov, n=n, dim=len(cov_dims))
+            set_(self, "det_cov", cov)
+
+    # -- derived views -------------------------------------------------------------------
+    @property
+    def n_detections(self) -> int:
+        return int(self.det_logits.shape[0])
+
+    @property
+    def n_layers(self) -> int:
+        return int(self.det_logits.shape[1])
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.frame_ids)
+
+    @cached_property
+    def det_labels(self) -> np.ndarray:
+        """`[N]` predicted class of each detection (arg-max of its final-layer logits)."""
+        return predict(self.det_logits[:, -1], self.score_mode)[0]
+
+    @cached_property
+    def det_scores(self) -> np.ndarray:
+        """`[N]` raw (uncalibrated) probability of each detection's predicted class."""
+        return predict(self.det_logits[:, -1], self.score_mode)[1]
+
+    @property
+    def final_boxes(self) -> np.ndarray:
+        """`[N, 9]` final-layer boxes."""
+        return self.det_boxes[:, -1]
+
+    def ego_xy(self, frame: np.ndarray) -> np.ndarray:
+        """`[M, 2]` ego position for each entry of a frame-index array (zeros if ego-frame)."""
+        if self.ego_translation is None:
+            return np.zeros((len(frame), 2))
+        return self.ego_translation[frame, :2]
+
+    @cached_property
+    def det_distance(self) -> np.ndarray:
+        """`[N]` BEV distance of each final-layer box centre from the ego."""
+        xy = self.final_boxes[:, :2] - self.ego_xy(self.det_frame)
+        return np.hypot(xy[:, 0], xy[:, 1])
+
+    @cached_property
+    def gt_distance(self) -> np.ndarray:
+        """`[G]` BEV distance of each ground-truth box centre from the ego."""
+        xy = self.gt_boxes[:, :2] - self.ego_xy(self.gt_frame)
+        return np.hypot(xy[:, 0], xy[:, 1])
+
+    def select_frames(self, keep: np.ndarray) -> Dump:
+        """A new dump with only the frames where the boolean `[F]` mask `keep` is True."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != (self.n_frames,):
+            raise ValueError(f"keep must have shape [{self.n_frames}], got {keep.shape}")
+        new_index = np.cumsum(keep) - 1
+        d = keep[self.det_frame]
+        g = keep[self.gt_frame]
+        return replace(
+            self,
+            frame_ids=self.frame_ids[keep],
+            ego_translation=None if self.ego_translation is None else self.ego_translation[keep],
+            det_frame=new_index[self.det_frame[d]],
+            det_logits=self.det_logits[d],
+            det_boxes=self.det_boxes[d],
+            det_cov=None if self.det_cov is None else self.det_cov[d],
+            gt_frame=new_index[self.gt_frame[g]],
+            gt_labels=self.gt_labels[g],
+            gt_boxes=self.gt_boxes[g],
+        )

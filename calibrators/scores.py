@@ -1,0 +1,52 @@
+"""From raw logits to class probabilities, labels and scores in both score modes.
+
+`sigmoid`: logits `[N, C]`, one independent probability per class (focal-loss heads).
+`softmax`: logits `[N, C + 1]`, the last column is no-object; probabilities are the
+first C columns of the softmax over all C + 1.
+A detection's label is the arg-max of its object-class logits and its score that
+class's probability; a temperature never changes the label.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.special import expit, log_softmax
+
+from calibrators._checks import as_float_array, check_choice
+
+SCORE_MODES = ("sigmoid", "softmax")
+
+
+def class_probabilities(logits: np.ndarray, mode: str, temperature: float = 1.0) -> np.ndarray:
+    """Object-class probabilities `[N, C]` from logits `[N, C']` at temperature `T`."""
+    z = _logits(logits, mode) / _temperature(temperature)
+    if mode == "sigmoid":
+        return expit(z)
+    return np.exp(log_softmax(z, axis=1))[:, :-1]
+
+
+def predict(logits: np.ndarray, mode: str, temperature: float = 1.0
+            ) -> tuple[np.ndarray, np.ndarray]:
+    """Labels `[N]` (int64) and scores `[N]` (probability of the label) from logits `[N, C']`."""
+    z = _logits(logits, mode)
+    n_obj = z.shape[1] if mode == "sigmoid" else z.shape[1] - 1
+    labels = np.argmax(z[:, :n_obj], axis=1).astype(np.int64)
+    probs = class_probabilities(z, mode, temperature)
+    return labels, probs[np.arange(len(labels)), labels]
+
+
+def _logits(logits: np.ndarray, mode: str) -> np.ndarray:
+    check_choice("score_mode", mode, SCORE_MODES)
+    z = as_float_array("logits", logits, ndim=2)
+    if mode == "softmax" and z.shape[1] < 2:
+        raise ValueError("logits must have at least 2 columns in softmax mode (C + no-object)")
+    if z.shape[1] < 1:
+        raise ValueError("logits must have at least 1 column")
+    return z
+
+
+def _temperature(temperature: float) -> float:
+    t = float(temperature)
+    if not np.isfinite(t) or t <= 0:
+        raise ValueError(f"temperature must be a finite number > 0, got {temperature}")
+    return t
