@@ -71,7 +71,7 @@ def check_probabilities(name: str, arr: np.ndarray) -> None:
     if bad.any():
         i = int(np.argmax(bad.reshape(-1)))
         value = arr.reshape(-1)[i]
-        raise ValueError(f"{name} must be probabilities in [0, 1]; entry {i} is {value}")
+        raise ValueError(f"{name} must hold probabilities in [0, 1]; entry {i} is {value}")
 
 
 def check_covariances(name: str, cov: np.ndarray, n: int | None = None, dim: int | None = None,

@@ -1,0 +1,46 @@
+"""Calibration metrics for detection scores and box uncertainty (thesis section 2.7).
+
+Every function validates its input and raises ValueError naming the argument and the
+reason. Result objects are frozen dataclasses with `to_dict()` (JSON-able, NaN -> None).
+"""
+
+from calibrators.metrics.classification import (
+    ReliabilityDiagram,
+    expected_calibration_error,
+    max_calibration_error,
+    reliability_diagram,
+)
+from calibrators.metrics.curves import (
+    CalibrationCurve,
+    average_calibration_curve,
+    miscalibration_area,
+)
+from calibrators.metrics.detection import detection_ece
+from calibrators.metrics.regression import (
+    Coverage,
+    ResidualPlot,
+    coverage,
+    mahalanobis,
+    regression_nll,
+    residual_uncertainty,
+)
+from calibrators.metrics.scoring import brier_score, classification_nll
+
+__all__ = [
+    "CalibrationCurve",
+    "Coverage",
+    "ReliabilityDiagram",
+    "ResidualPlot",
+    "average_calibration_curve",
+    "brier_score",
+    "classification_nll",
+    "coverage",
+    "detection_ece",
+    "expected_calibration_error",
+    "mahalanobis",
+    "max_calibration_error",
+    "miscalibration_area",
+    "regression_nll",
+    "reliability_diagram",
+    "residual_uncertainty",
+]
