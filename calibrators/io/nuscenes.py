@@ -1,0 +1,295 @@
+"""nuScenes results JSON + ground-truth JSON (`DetectionBox` form) <-> `Dump`.
+
+Both files are `{"meta": {...}, "results": {sample_token: [box, ...]}}`. A box has the devkit's
+fields: sample_token, translation [3], size [3] (w, l, h), rotation [4] (quaternion w, x, y, z),
+velocity [2], ego_translation [3] (the box centre minus the ego position, as the devkit's
+`add_center_dist` sets it), num_pts, detection_name, detection_score, attribute_name; plus our
+optional extensions `detection_logits` [C'], `covariance` [D][D] and `detection_score_raw`.
+docs/formats.md has the full description and the conventions.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+from scipy.special import logit
+
+from calibrators._checks import as_float_array, check_length, check_probabilities
+from calibrators.dump import Dump
+
+NUSCENES_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
+                    "motorcycle", "bicycle", "traffic_cone", "barrier")
+EGO_TOLERANCE = 0.01  # metres: boxes of one frame must agree on the ego position to this
+OTHER_CLASS_PROB = 1e-6  # probability given to the other classes when only a score is known
+_SCORE_CLIP = 1e-12
+_DEVKIT_META = {"use_camera": False, "use_lidar": False, "use_radar": False, "use_map": False,
+                "use_external": False}
+
+
+def load_nuscenes(results_path: str | os.PathLike[str], gt_path: str | os.PathLike[str],
+                  classes: Sequence[str] | None = None) -> Dump:
+    """Read a results JSON and its ground-truth JSON into a `Dump` (L = 1 decoder layer).
+
+    `classes` defaults to meta["classes"] of the results file, else the 10 nuScenes classes.
+    Ground-truth boxes with `num_pts == 0` are dropped (the devkit never evaluates them).
+    """
+    results, meta = _read(results_path, "results")
+    gt, _ = _read(gt_path, "ground truth")
+    classes = tuple(str(c) for c in (classes if classes is not None
+                                     else meta.get("classes", NUSCENES_CLASSES)))
+    tokens = list(results)
+    for a, b, name_a, name_b in ((gt, results, "ground truth", "results"),
+                                 (results, gt, "results", "ground truth")):
+        extra = [t for t in a if t not in b]
+        if extra:
+            raise ValueError(f"{name_a} has {len(extra)} sample token(s) that {name_b} lacks, "
+                             f"e.g. {extra[0]!r}; both files must cover the same samples")
+    det = _parse(results, tokens, classes, "results", prediction=True)
+    ref = _parse(gt, tokens, classes, "ground truth", prediction=False)
+    keep = ref["num_pts"] != 0
+
+    cov_dims = tuple(meta.get("cov_dims", ("x", "y")))
+    logits, score_mode = _logits(det, classes, meta)
+    return Dump(
+        classes=classes, score_mode=score_mode, frame_ids=np.array(tokens, dtype=str),
+        ego_translation=_ego(det, ref, tokens),
+        det_frame=det["frame"], det_logits=logits[:, None, :], det_boxes=det["boxes"][:, None, :],
+        det_cov=_covariances(det, len(cov_dims)), cov_dims=cov_dims,
+        gt_frame=ref["frame"][keep], gt_labels=ref["label"][keep], gt_boxes=ref["boxes"][keep])
+
+
+def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
+                  gt_path: str | os.PathLike[str], scores: np.ndarray | None = None,
+                  covariances: np.ndarray | None = None) -> None:
+    """Write `dump` (final layer) as a results JSON and a ground-truth JSON.
+
+    `scores` [N] replace detection_score (the raw one goes to detection_score_raw);
+    `covariances` [N, D, D] over dump.cov_dims replace dump.det_cov.
+    """
+    if not isinstance(dump, Dump):
+        raise ValueError(f"dump must be a calibrators.Dump, got {type(dump).__name__}")
+    raw = dump.det_scores
+    if scores is not None:
+        scores = as_float_array("scores", scores, ndim=1)
+        check_length("scores", scores, dump.n_detections, "det_logits")
+        check_probabilities("scores", scores)
+    if covariances is not None:
+        covariances = as_float_array("covariances", covariances, ndim=3)
+        d = len(dump.cov_dims)
+        if covariances.shape != (dump.n_detections, d, d):
+            raise ValueError(f"covariances must have shape [{dump.n_detections}, {d}, {d}], "
+                             f"got {covariances.shape}")
+    cov = covariances if covariances is not None else dump.det_cov
+    ego = (np.zeros((dump.n_frames, 3)) if dump.ego_translation is None
+           else dump.ego_translation)
+    meta = {**_DEVKIT_META, "classes": list(dump.classes), "score_mode": dump.score_mode,
+            "cov_dims": list(dump.cov_dims)}
+
+    det_out: dict[str, list] = {str(t): [] for t in dump.frame_ids}
+    for i in range(dump.n_detections):
+        f = int(dump.det_frame[i])
+        box = _box(dump.final_boxes[i], dump.frame_ids[f], ego[f],
+                   dump.classes[dump.det_labels[i]],
+                   float(raw[i] if scores is None else scores[i]))
+        box["detection_logits"] = dump.det_logits[i, -1].tolist()
+        if scores is not None:
+            box["detection_score_raw"] = float(raw[i])
+        if cov is not None:
+            box["covariance"] = cov[i].tolist()
+        det_out[str(dump.frame_ids[f])].append(box)
+    gt_out: dict[str, list] = {str(t): [] for t in dump.frame_ids}
+    for j in range(len(dump.gt_boxes)):
+        f = int(dump.gt_frame[j])
+        gt_out[str(dump.frame_ids[f])].append(
+            _box(dump.gt_boxes[j], dump.frame_ids[f], ego[f], dump.classes[dump.gt_labels[j]],
+                 -1.0))
+    _write_json(results_path, {"meta": meta, "results": det_out})
+    _write_json(gt_path, {"meta": meta, "results": gt_out})
+
+
+# -- reading ----------------------------------------------------------------------------------
+def _read(path: str | os.PathLike[str], what: str) -> tuple[dict, dict]:
+    try:
+        with open(path, encoding="utf-8") as fh:
+            content = json.load(fh)
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{what} file {os.fspath(path)!r} is not valid JSON: {exc}") from None
+    if not isinstance(content, dict) or not isinstance(content.get("results"), dict):
+        raise ValueError(f"{what} file {os.fspath(path)!r} must be an object with a 'results' "
+                         "object mapping sample tokens to lists of boxes")
+    meta = content.get("meta", {})
+    if not isinstance(meta, dict):
+        raise ValueError(f"{what} 'meta' must be an object")
+    return content["results"], meta
+
+
+def _parse(boxes: dict, tokens: list[str], classes: tuple[str, ...], what: str,
+           prediction: bool) -> dict[str, np.ndarray | list]:
+    """Columns of every box, frame by frame in `tokens` order, in file order within a frame."""
+    index = {c: k for k, c in enumerate(classes)}
+    frame, label, rows, score, ego_rel, logits, cov, num_pts = [], [], [], [], [], [], [], []
+    for f, token in enumerate(tokens):
+        items = boxes[token]
+        if not isinstance(items, list):
+            raise ValueError(f"{what}[{token!r}] must be a list of boxes")
+        for i, box in enumerate(items):
+            where = f"{what}[{token!r}][{i}]"
+            if not isinstance(box, dict):
+                raise ValueError(f"{where} must be an object")
+            if box.get("sample_token", token) != token:
+                raise ValueError(f"{where}.sample_token is {box['sample_token']!r}, not {token!r}")
+            name = box.get("detection_name")
+            if name not in index:
+                raise ValueError(f"{where}.detection_name {name!r} is not one of {list(classes)}")
+            t = _vector(box, "translation", 3, where)
+            size = _vector(box, "size", 3, where)
+            yaw = _yaw(_vector(box, "rotation", 4, where), where)
+            vel = _vector(box, "velocity", 2, where)
+            rows.append([*t, *size, yaw, *vel])
+            frame.append(f)
+            label.append(index[name])
+            rel = box.get("ego_translation")
+            rel = None if rel is None else _vector(box, "ego_translation", 3, where)
+            ego_rel.append(None if rel is None or not np.any(rel) else rel)
+            num_pts.append(int(box.get("num_pts", -1)))
+            if prediction:
+                score.append(_vector(box, "detection_score", 0, where))
+                logits.append(box.get("detection_logits"))
+                cov.append(box.get("covariance"))
+    return {"frame": np.array(frame, dtype=np.int64), "label": np.array(label, dtype=np.int64),
+            "boxes": np.array(rows, dtype=float).reshape(-1, 9), "score": np.array(score),
+            "ego_rel": ego_rel, "logits": logits, "cov": cov,
+            "num_pts": np.array(num_pts, dtype=np.int64), "what": what}
+
+
+def _vector(box: dict, key: str, n: int, where: str) -> np.ndarray:
+    if key not in box:
+        raise ValueError(f"{where} is missing {key!r}")
+    try:
+        value = np.asarray(box[key], dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{where}.{key} must be numeric, got {box[key]!r}") from None
+    if value.shape != ((n,) if n else ()):
+        raise ValueError(f"{where}.{key} must be {n} numbers" if n else
+                         f"{where}.{key} must be a number")
+    if not np.all(np.isfinite(value)):
+        raise ValueError(f"{where}.{key} has NaN or Inf: {box[key]!r}")
+    return value
+
+
+def _yaw(q: np.ndarray, where: str) -> float:
+    """Yaw about +z of quaternion (w, x, y, z), as the devkit's quaternion_yaw."""
+    w, x, y, z = q
+    if w * w + x * x + y * y + z * z == 0:
+        raise ValueError(f"{where}.rotation is the zero quaternion")
+    return float(np.arctan2(2 * (w * z + x * y), w * w + x * x - y * y - z * z))
+
+
+def _ego(det: dict, ref: dict, tokens: list[str]) -> np.ndarray | None:
+    """`[F, 3]` ego position per frame from translation - ego_translation; None = ego frame."""
+    n_frames = len(tokens)
+    estimates: list[list[np.ndarray]] = [[] for _ in range(n_frames)]
+    given = False
+    for part in (det, ref):
+        for k, rel in enumerate(part["ego_rel"]):
+            if rel is not None:
+                given = True
+                estimates[part["frame"][k]].append(part["boxes"][k, :3] - rel)
+    if not given:
+        return None
+    ego = np.zeros((n_frames, 3))
+    has_box = np.zeros(n_frames, dtype=bool)
+    has_box[det["frame"]] = True
+    has_box[ref["frame"]] = True
+    for f, est in enumerate(estimates):
+        if not est:
+            if has_box[f]:
+                raise ValueError(f"sample {tokens[f]!r} has boxes but none with an "
+                                 "ego_translation, so its ego position is unknown")
+            continue
+        est_arr = np.array(est)
+        spread = float(np.max(np.linalg.norm(est_arr - est_arr[0], axis=1)))
+        if spread > EGO_TOLERANCE:
+            raise ValueError(f"boxes of sample {tokens[f]!r} disagree on the ego position "
+                             f"(translation - ego_translation) by {spread:.3g} m > "
+                             f"{EGO_TOLERANCE} m")
+        ego[f] = est_arr.mean(axis=0)
+    return None if not ego.any() else ego
+
+
+def _logits(det: dict, classes: tuple[str, ...], meta: dict) -> tuple[np.ndarray, str]:
+    """`[N, C']` logits and the score mode, from detection_logits or from the scores."""
+    n, c = len(det["label"]), len(classes)
+    given = [v is not None for v in det["logits"]]
+    if any(given) and not all(given):
+        raise ValueError(f"results box {given.index(False)} lacks detection_logits while others "
+                         "have them; give them for every box or for none")
+    if not any(given):
+        if meta.get("score_mode", "sigmoid") != "sigmoid":
+            raise ValueError("meta.score_mode is softmax but the boxes have no detection_logits")
+        scores = det["score"].reshape(-1)
+        check_probabilities("detection_score", scores)
+        z = logit(np.clip(scores, _SCORE_CLIP, 1 - _SCORE_CLIP))
+        out = np.minimum(logit(OTHER_CLASS_PROB), z - 1.0)[:, None] * np.ones((n, c))
+        out[np.arange(n), det["label"]] = z
+        return out, "sigmoid"
+    logits = as_float_array("detection_logits", det["logits"], ndim=2)
+    mode = meta.get("score_mode", "sigmoid" if logits.shape[1] == c else "softmax")
+    want = c + (mode == "softmax")
+    if logits.shape[1] != want:
+        raise ValueError(f"detection_logits have {logits.shape[1]} entries but {mode} mode with "
+                         f"{c} classes needs {want}")
+    arg = np.argmax(logits[:, :c], axis=1)
+    bad = arg != det["label"]
+    if bad.any():
+        k = int(np.argmax(bad))
+        raise ValueError(f"results box {k}: detection_name {classes[det['label'][k]]!r} is not "
+                         f"the arg-max of its detection_logits ({classes[arg[k]]!r})")
+    return logits, mode
+
+
+def _covariances(det: dict, d: int) -> np.ndarray | None:
+    given = [v is not None for v in det["cov"]]
+    if not any(given):
+        return None
+    if not all(given):
+        raise ValueError(f"results box {given.index(False)} lacks a covariance while others "
+                         "have one; give it for every box or for none")
+    cov = as_float_array("covariance", det["cov"], ndim=3)
+    if cov.shape[1:] != (d, d):
+        raise ValueError(f"covariance must be {d}x{d} (meta.cov_dims), got {cov.shape[1:]}")
+    return cov
+
+
+# -- writing ----------------------------------------------------------------------------------
+def _box(row: np.ndarray, token: str, ego: np.ndarray, name: str, score: float) -> dict:
+    yaw = float(row[6])
+    return {
+        "sample_token": str(token),
+        "translation": [float(v) for v in row[:3]],
+        "size": [float(v) for v in row[3:6]],
+        "rotation": [float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2))],
+        "velocity": [float(row[7]), float(row[8])],
+        "ego_translation": [float(v) for v in row[:3] - ego],
+        "num_pts": -1,
+        "detection_name": name,
+        "detection_score": score,
+        "attribute_name": "",
+    }
+
+
+def _write_json(path: str | os.PathLike[str], content: dict) -> None:
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            json.dump(content, fh, allow_nan=False)
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise

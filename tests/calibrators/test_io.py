@@ -1,0 +1,306 @@
+"""calibrators.io: validation dump v1 NPZ and the nuScenes JSON pair."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+
+import numpy as np
+import pytest
+
+from calibrators.dump import Dump
+from calibrators.evaluate import evaluate
+from calibrators.io import file_sha256, load_dump, load_nuscenes, save_dump, save_nuscenes
+from calibrators.io.npz import OPTIONAL_KEYS, REQUIRED_KEYS
+
+CLASSES = ("car", "pedestrian", "traffic_cone")
+
+
+def arrays(seed=0, n=12, g=5, f=3, layers=2, mode="sigmoid", optional=True):
+    """The raw NPZ arrays of a small valid dump."""
+    rng = np.random.default_rng(seed)
+    width = len(CLASSES) + (mode == "softmax")
+    boxes = np.column_stack([rng.uniform(-20, 20, (n * layers, 3)),
+                             rng.uniform(0.5, 3, (n * layers, 3)),
+                             rng.uniform(-3.1, 3.1, n * layers), rng.normal(0, 1, (n * layers, 2))])
+    gt = np.column_stack([rng.uniform(-20, 20, (g, 3)), rng.uniform(0.5, 3, (g, 3)),
+                          rng.uniform(-3.1, 3.1, g), rng.normal(0, 1, (g, 2))])
+    out = {
+        "classes": np.array(CLASSES), "score_mode": np.array(mode),
+        "frame_ids": np.array([f"tok{i}" for i in range(f)]),
+        "det_frame": rng.integers(0, f, n), "det_logits": rng.normal(0, 2, (n, layers, width)),
+        "det_boxes": boxes.reshape(n, layers, 9),
+        "gt_frame": rng.integers(0, f, g), "gt_labels": rng.integers(0, len(CLASSES), g),
+        "gt_boxes": gt,
+    }
+    if optional:
+        a = rng.normal(0, 1, (n, 2, 2))
+        out["det_cov"] = a @ np.swapaxes(a, 1, 2) + 0.1 * np.eye(2)
+        out["cov_dims"] = np.array(["x", "y"])
+        out["ego_translation"] = rng.uniform(-500, 500, (f, 3))
+    return out
+
+
+def write(path, content):
+    np.savez(path, **content)
+    return path
+
+
+def assert_same(a: Dump, b: Dump):
+    assert a.classes == b.classes and a.score_mode == b.score_mode and a.cov_dims == b.cov_dims
+    for key in ("frame_ids", "det_frame", "det_logits", "det_boxes", "gt_frame", "gt_labels",
+                "gt_boxes", "ego_translation", "det_cov"):
+        x, y = getattr(a, key), getattr(b, key)
+        assert (x is None) == (y is None), key
+        if x is not None:
+            np.testing.assert_array_equal(x, y, err_msg=key)
+
+
+@pytest.mark.parametrize("optional", [True, False])
+@pytest.mark.parametrize("mode", ["sigmoid", "softmax"])
+def test_npz_round_trip(tmp_path, optional, mode):
+    dump = load_dump(write(tmp_path / "a.npz", arrays(mode=mode, optional=optional)))
+    target = tmp_path / "copy.dump"  # no .npz suffix appended
+    save_dump(target, dump)
+    assert target.exists() and not (tmp_path / "copy.dump.npz").exists()
+    assert_same(load_dump(target), dump)
+    assert (dump.det_cov is None) != optional
+
+
+@pytest.mark.parametrize("key", REQUIRED_KEYS)
+def test_every_missing_key_is_refused(tmp_path, key):
+    content = arrays()
+    del content[key]
+    with pytest.raises(ValueError, match=f"missing key '{key}'"):
+        load_dump(write(tmp_path / "a.npz", content))
+
+
+def test_optional_keys_may_be_absent(tmp_path):
+    content = arrays()
+    for key in OPTIONAL_KEYS:
+        del content[key]
+    dump = load_dump(write(tmp_path / "a.npz", content))
+    assert dump.ego_translation is None and dump.det_cov is None and dump.cov_dims == ("x", "y")
+
+
+def test_unknown_key_is_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown key 'det_covs'"):
+        load_dump(write(tmp_path / "a.npz", {**arrays(), "det_covs": np.zeros(3)}))
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("det_boxes", lambda a: a["det_boxes"][..., :8], "det_boxes must have shape"),
+    ("det_logits", lambda a: a["det_logits"][..., :2], "det_logits has 2 columns"),
+    ("det_logits", lambda a: a["det_logits"][:, 0], "det_logits must have 3 dimensions"),
+    ("gt_boxes", lambda a: a["gt_boxes"][:, :7], "gt_boxes must have shape"),
+    ("gt_labels", lambda a: a["gt_labels"][:-1], "gt_labels has 4 rows"),
+    ("det_frame", lambda a: a["det_frame"][:, None], "det_frame must have 1 dimensions"),
+    ("ego_translation", lambda a: a["ego_translation"][:, :2], "ego_translation must have shape"),
+    ("det_cov", lambda a: a["det_cov"][:, :1, :1], "det_cov must be 2x2"),
+    ("score_mode", lambda a: np.array(["sigmoid"]), "score_mode must be a scalar"),
+    ("score_mode", lambda a: np.array("logistic"), "score_mode must be one of"),
+    ("classes", lambda a: np.arange(3), "classes must be a string array"),
+    ("cov_dims", lambda a: np.array(["x", "q"]), "cov_dims must be one of"),
+])
+def test_wrong_shapes_and_values_are_named(tmp_path, key, value, message):
+    content = arrays()
+    content[key] = value(content)
+    with pytest.raises(ValueError, match=message):
+        load_dump(write(tmp_path / "a.npz", content))
+
+
+@pytest.mark.parametrize("key", ["det_logits", "det_boxes", "gt_boxes", "ego_translation",
+                                 "det_cov"])
+@pytest.mark.parametrize("bad", [np.nan, np.inf])
+def test_nan_and_inf_are_named(tmp_path, key, bad):
+    content = arrays()
+    content[key] = content[key].copy()
+    content[key].reshape(-1)[3] = bad
+    with pytest.raises(ValueError, match=f"{key} has (NaN|Inf)"):
+        load_dump(write(tmp_path / "a.npz", content))
+
+
+@pytest.mark.parametrize("key, value", [("det_frame", 3), ("gt_frame", -1), ("gt_labels", 3)])
+def test_index_out_of_range_is_named(tmp_path, key, value):
+    content = arrays()
+    content[key] = content[key].copy()
+    content[key][1] = value
+    with pytest.raises(ValueError, match=rf"{key}\[1\] = {value} is out of range"):
+        load_dump(write(tmp_path / "a.npz", content))
+
+
+def test_pickled_arrays_are_never_loaded(tmp_path):
+    content = arrays()
+    content["classes"] = np.array(list(CLASSES), dtype=object)  # needs pickle
+    with pytest.raises(ValueError, match="key 'classes' cannot be read without unpickling"):
+        load_dump(write(tmp_path / "a.npz", content))
+
+
+def test_not_an_archive(tmp_path):
+    (tmp_path / "x.npz").write_text("hello")
+    with pytest.raises(ValueError, match="not a readable NPZ"):
+        load_dump(tmp_path / "x.npz")
+    np.save(tmp_path / "y.npy", np.zeros(3))
+    with pytest.raises(ValueError, match="single array"):
+        load_dump(tmp_path / "y.npy")
+
+
+def test_bytes_strings_are_accepted(tmp_path):
+    content = arrays()
+    content["classes"] = np.array([c.encode() for c in CLASSES])
+    assert load_dump(write(tmp_path / "a.npz", content)).classes == CLASSES
+
+
+def test_file_sha256(tmp_path):
+    path = tmp_path / "blob"
+    data = np.random.default_rng(0).bytes(3_000_000)
+    path.write_bytes(data)
+    assert file_sha256(path) == hashlib.sha256(data).hexdigest()
+
+
+# -- nuScenes JSON -----------------------------------------------------------------------------
+def nusc_dump(seed=0, ego=True, cov=True):
+    content = arrays(seed=seed, n=30, g=10, f=4, layers=1, optional=True)
+    if not ego:
+        del content["ego_translation"]
+    if not cov:
+        del content["det_cov"]
+    g = len(content["gt_boxes"])  # the first g detections find their ground truth
+    content["det_frame"][:g] = content["gt_frame"]
+    content["det_boxes"][:g, 0] = content["gt_boxes"] + 0.3
+    content["det_logits"][np.arange(g), 0, content["gt_labels"]] += 10.0
+    fields = {k: (str(v) if k == "score_mode" else v) for k, v in content.items()}
+    return Dump(**fields)
+
+
+@pytest.mark.parametrize("ego", [True, False])
+def test_nuscenes_round_trip(tmp_path, ego):
+    dump = nusc_dump(ego=ego)
+    res, gt = tmp_path / "results.json", tmp_path / "gt.json"
+    save_nuscenes(dump, res, gt)
+    back = load_nuscenes(res, gt)
+    assert back.classes == dump.classes and back.score_mode == dump.score_mode
+    order = np.argsort(dump.det_frame, kind="stable")  # written frame by frame
+    gorder = np.argsort(dump.gt_frame, kind="stable")
+    np.testing.assert_array_equal(back.frame_ids, dump.frame_ids)
+    np.testing.assert_array_equal(back.det_frame, dump.det_frame[order])
+    np.testing.assert_array_equal(back.det_logits, dump.det_logits[order])
+    np.testing.assert_allclose(back.det_boxes, dump.det_boxes[order], atol=1e-9)
+    np.testing.assert_allclose(back.det_cov, dump.det_cov[order])
+    np.testing.assert_array_equal(back.gt_labels, dump.gt_labels[gorder])
+    np.testing.assert_allclose(back.gt_boxes, dump.gt_boxes[gorder], atol=1e-9)
+    if ego:
+        np.testing.assert_allclose(back.ego_translation, dump.ego_translation, atol=1e-9)
+    else:
+        assert back.ego_translation is None
+    a = evaluate(dump, class_range=None, max_boxes_per_frame=None)
+    b = evaluate(back, class_range=None, max_boxes_per_frame=None)
+    assert a.mean_ap > 0.1
+    for name in a.ap:
+        assert a.ap[name] == pytest.approx(b.ap[name], abs=1e-12)
+
+
+def test_nuscenes_scores_and_covariances_as_extra_keys(tmp_path):
+    dump = nusc_dump(cov=False)
+    res, gt = tmp_path / "r.json", tmp_path / "g.json"
+    scores = np.linspace(0.01, 0.99, dump.n_detections)
+    cov = np.tile(np.eye(2) * 4.0, (dump.n_detections, 1, 1))
+    save_nuscenes(dump, res, gt, scores=scores, covariances=cov)
+    boxes = [b for v in json.loads(res.read_text())["results"].values() for b in v]
+    first = np.flatnonzero(dump.det_frame == 0)[0]
+    assert boxes[0]["detection_score"] == scores[first]
+    assert boxes[0]["detection_score_raw"] == pytest.approx(dump.det_scores[first])
+    assert boxes[0]["covariance"] == [[4.0, 0.0], [0.0, 4.0]]
+    gt_boxes = [b for v in json.loads(gt.read_text())["results"].values() for b in v]
+    assert all(b["detection_score"] == -1.0 for b in gt_boxes)
+    with pytest.raises(ValueError, match="covariances must have shape"):
+        save_nuscenes(dump, res, gt, covariances=cov[:, :1, :1])
+
+
+def devkit_box(token, name, xyz, score=0.5, yaw=0.0, **extra):
+    return {"sample_token": token, "translation": list(xyz), "size": [2.0, 4.0, 1.5],
+            "rotation": [float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2))],
+            "velocity": [1.0, 0.0], "detection_name": name, "detection_score": score,
+            "attribute_name": "", **extra}
+
+
+def write_pair(tmp_path, results, gt, meta=None):
+    res, g = tmp_path / "r.json", tmp_path / "g.json"
+    res.write_text(json.dumps({"meta": meta or {}, "results": results}))
+    g.write_text(json.dumps({"meta": {}, "results": gt}))
+    return res, g
+
+
+def test_plain_results_get_sigmoid_logits_from_the_score(tmp_path):
+    res, gt = write_pair(
+        tmp_path,
+        {"a": [devkit_box("a", "pedestrian", (1, 2, 0), 0.7),
+               devkit_box("a", "car", (5, 0, 0), 1e-9)], "b": []},
+        {"a": [devkit_box("a", "car", (5, 0, 0), -1.0, num_pts=4),
+               devkit_box("a", "bus", (9, 9, 0), -1.0, num_pts=0)],  # no points: dropped
+         "b": [devkit_box("b", "car", (1, 0, 0), -1.0)]})
+    dump = load_nuscenes(res, gt)
+    assert dump.classes[:2] == ("car", "truck") and dump.score_mode == "sigmoid"
+    assert dump.det_labels.tolist() == [5, 0]
+    np.testing.assert_allclose(dump.det_scores, [0.7, 1e-9])
+    np.testing.assert_allclose(dump.det_logits[0, 0, 0], np.log(1e-6 / (1 - 1e-6)))
+    assert dump.gt_labels.tolist() == [0, 0] and dump.gt_frame.tolist() == [0, 1]
+    assert dump.ego_translation is None
+
+
+def test_yaw_from_a_non_unit_quaternion(tmp_path):
+    q = 2.0 * np.array([np.cos(0.15), 0.0, 0.0, np.sin(0.15)])
+    b = devkit_box("a", "car", (0, 0, 0))
+    b["rotation"] = q.tolist()
+    res, gt = write_pair(tmp_path, {"a": [b]}, {"a": []})
+    assert load_nuscenes(res, gt).det_boxes[0, 0, 6] == pytest.approx(0.3)
+
+
+def test_ego_position_from_ego_translation(tmp_path):
+    ego = np.array([100.0, 200.0, 0.0])
+    det = devkit_box("a", "car", (110, 200, 1), ego_translation=[10.0, 0.0, 1.0])
+    gt = devkit_box("a", "car", (90, 205, 1), -1.0, ego_translation=[-10.0, 5.0, 1.0])
+    res, g = write_pair(tmp_path, {"a": [det]}, {"a": [gt]})
+    np.testing.assert_allclose(load_nuscenes(res, g).ego_translation, [ego])
+    gt["ego_translation"] = [-10.0, 6.0, 1.0]  # 1 m off
+    res, g = write_pair(tmp_path, {"a": [det]}, {"a": [gt]})
+    with pytest.raises(ValueError, match="disagree on the ego position"):
+        load_nuscenes(res, g)
+
+
+@pytest.mark.parametrize("mutate, message", [
+    (lambda b: b.pop("translation"), "missing 'translation'"),
+    (lambda b: b.update(velocity=[float("nan"), 0.0]), r"velocity has NaN"),
+    (lambda b: b.update(size=[1.0, 2.0]), "size must be 3 numbers"),
+    (lambda b: b.update(detection_name="cat"), "detection_name 'cat'"),
+    (lambda b: b.update(detection_score=1.5), "detection_score must .*probabilities"),
+    (lambda b: b.update(rotation=[0, 0, 0, 0]), "zero quaternion"),
+    (lambda b: b.update(sample_token="zzz"), "sample_token is 'zzz'"),
+    (lambda b: b.update(detection_logits=[5.0] + [0.0] * 9), "not the arg-max"),
+])
+def test_bad_nuscenes_boxes_are_named(tmp_path, mutate, message):
+    b = devkit_box("a", "truck", (1, 1, 0))
+    mutate(b)
+    res, gt = write_pair(tmp_path, {"a": [b]}, {"a": []})
+    with pytest.raises(ValueError, match=message):
+        load_nuscenes(res, gt)
+
+
+def test_sample_tokens_must_agree(tmp_path):
+    res, gt = write_pair(tmp_path, {"a": []}, {"a": [], "b": []})
+    with pytest.raises(ValueError, match="ground truth has 1 sample token"):
+        load_nuscenes(res, gt)
+    (tmp_path / "bad.json").write_text("{not json")
+    with pytest.raises(ValueError, match="not valid JSON"):
+        load_nuscenes(tmp_path / "bad.json", gt)
+
+
+def test_npz_through_a_file_object(tmp_path):
+    import io
+
+    dump = load_dump(write(tmp_path / "a.npz", arrays()))
+    buf = io.BytesIO()
+    save_dump(buf, dump)
+    assert_same(load_dump(io.BytesIO(buf.getvalue())), dump)
+    with pytest.raises(ValueError, match="the file object is not a readable NPZ"):
+        load_dump(io.BytesIO(b"garbage"))
