@@ -1,0 +1,277 @@
+"""`detcal fit`, `detcal evaluate` and `detcal calibrate`: the calibration library offline.
+
+Inputs are a validation dump v1 (`.npz`) or a nuScenes results JSON with its ground-truth JSON
+(`--nuscenes-gt`). Heavy imports happen inside the handlers so `detcal --help` stays fast.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import sys
+import tempfile
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from app.cli import CliError
+
+COV_SOURCES = ("auto", "given", "layers", "none")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the `fit`, `evaluate` and `calibrate` subcommands."""
+    fit = subparsers.add_parser(
+        "fit", help="fit a calibration profile on a validation dump",
+        description="Match detections to ground truth, fit the temperature and the per-class "
+                    "depth k, print the before/after table and write the profile JSON.")
+    _add_input(fit)
+    fit.add_argument("--out", default="profile.json", help="profile JSON to write "
+                     "(default: %(default)s)")
+    fit.add_argument("--threshold", type=float, default=2.0,
+                     help="matching distance in m (default: %(default)s)")
+    fit.add_argument("--dims", default="x,y", help="regression dims (default: %(default)s)")
+    fit.add_argument("--holdout", type=float, default=0.0,
+                     help="fraction of frames held out for the report (default: %(default)s)")
+    fit.add_argument("--cov-source", choices=COV_SOURCES, default="auto",
+                     help="raw covariance: det_cov, spread across layers, or none "
+                          "(default: %(default)s)")
+    fit.add_argument("--min-score", type=float, default=None,
+                     help="only detections with a raw score >= this take part (default: all)")
+    fit.add_argument("--min-samples", type=int, default=50,
+                     help="matches a class needs for its own k (default: %(default)s)")
+    fit.add_argument("--seed", type=int, default=0, help="hold-out split seed")
+    fit.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    fit.set_defaults(func=run_fit)
+
+    ev = subparsers.add_parser(
+        "evaluate", help="mAP and calibration metrics of a dump",
+        description="nuScenes mAP / NDS, per-class AP, and calibration metrics (before, and "
+                    "after the profile if one is given).")
+    _add_input(ev)
+    ev.add_argument("--profile", help="profile JSON to apply")
+    ev.add_argument("--threshold", type=float, default=2.0,
+                    help="matching distance for the calibration metrics (default: %(default)s)")
+    ev.add_argument("--json", action="store_true", help="print one JSON document")
+    ev.set_defaults(func=run_evaluate)
+
+    cal = subparsers.add_parser(
+        "calibrate", help="calibrate detections offline into a nuScenes results JSON",
+        description="Apply a profile to an NPZ dump or a nuScenes results JSON and write a "
+                    "nuScenes results JSON with the calibrated detection_score and the raw "
+                    "score and calibrated covariance as extra keys.")
+    cal.add_argument("file", metavar="FILE", help="NPZ dump or nuScenes results JSON")
+    cal.add_argument("--profile", required=True, help="profile JSON to apply")
+    cal.add_argument("--nuscenes-gt", metavar="GT.json",
+                     help="ground-truth JSON giving the frames' ego positions (results JSON)")
+    cal.add_argument("--out", default="-", help="output JSON (default: stdout)")
+    cal.set_defaults(func=run_calibrate)
+
+
+def _add_input(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("dump", metavar="DUMP",
+                        help="validation dump (.npz), or a nuScenes results JSON with "
+                             "--nuscenes-gt")
+    parser.add_argument("--nuscenes-gt", metavar="GT.json",
+                        help="ground-truth JSON (DetectionBox form) when DUMP is a results JSON")
+
+
+# -- handlers --------------------------------------------------------------------------------
+def run_fit(args: argparse.Namespace) -> int:
+    """`detcal fit`: fit, print the table, write the profile."""
+    from calibrators.fit import fit_profile
+    from calibrators.report import format_table
+
+    dump, sha = load_input(args.dump, args.nuscenes_gt)
+    progress = None if args.quiet else _progress
+    profile = fit_profile(dump, threshold=args.threshold, dims=args.dims,
+                          cov_source=args.cov_source, holdout=args.holdout,
+                          min_score=args.min_score, min_samples=args.min_samples,
+                          seed=args.seed, dump_sha256=sha, progress=progress)
+    _write_text(args.out, profile.to_json())
+    print(format_table(profile.report))
+    print(f"wrote {args.out}: T = {profile.temperature:.4g}, pooled k = {profile.pooled_k:.4g}, "
+          f"cov_source {profile.cov_source}", file=sys.stderr)
+    return 0
+
+
+def run_evaluate(args: argparse.Namespace) -> int:
+    """`detcal evaluate`: mAP, per-class AP and calibration metrics."""
+    from calibrators.evaluate import evaluate
+    from calibrators.report import calibration_report, format_table
+
+    dump, _ = load_input(args.dump, args.nuscenes_gt)
+    profile = load_profile(args.profile) if args.profile else None
+    report = calibration_report(dump, profile, threshold=args.threshold)
+    ev = evaluate(dump)
+    ev_after = None
+    if profile is not None and dump.n_detections:
+        scores = _calibrated(dump, profile).scores
+        ev_after = evaluate(dump, scores=scores)
+    if args.json:
+        doc = {"evaluation": ev.to_dict(),
+               "evaluation_calibrated": None if ev_after is None else ev_after.to_dict(),
+               "calibration": report}
+        print(json.dumps(doc, allow_nan=False))
+        return 0
+    print(_ap_table(ev.to_dict(), None if ev_after is None else ev_after.to_dict()))
+    print()
+    print(format_table(report))
+    return 0
+
+
+def run_calibrate(args: argparse.Namespace) -> int:
+    """`detcal calibrate`: write a calibrated nuScenes results JSON."""
+    profile = load_profile(args.profile)
+    path = _existing(args.file)
+    if path.suffix.lower() == ".json":
+        doc = _calibrate_results_json(path, profile, args.nuscenes_gt)
+        _write_text(args.out, json.dumps(doc, allow_nan=False))
+        return 0
+    from calibrators.io import save_nuscenes
+
+    dump, _ = load_input(str(path), None)
+    out = _calibrated(dump, profile)
+    # Σ' is over the profile's dims, which need not be the dump's cov_dims.
+    dump = replace(dump, det_cov=None, cov_dims=tuple(profile.cov_dims))
+    with tempfile.TemporaryDirectory() as tmp:
+        results = Path(tmp) / "results.json"
+        save_nuscenes(dump, results, Path(tmp) / "gt.json", scores=out.scores,
+                      covariances=out.covariances)
+        _write_text(args.out, results.read_text(encoding="utf-8").rstrip("\n"))
+    return 0
+
+
+def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None) -> dict:
+    """The results document with every box's score calibrated, other keys kept.
+
+    Each box gets `detection_score` (calibrated), `detection_score_raw` and `covariance`
+    (Σ' over the profile's dims); the document's meta gains `cov_dims`. Boxes without
+    `detection_logits` are calibrated from their score, `sigmoid(logit(p) / T)`. Without
+    `--nuscenes-gt`, distances are measured from the boxes' `ego_translation` if they have
+    one, else from the origin (ego-frame results).
+    """
+    from calibrators.io import load_nuscenes
+
+    try:
+        doc = json.loads(path.read_bytes())
+        results = doc["results"]
+        tokens = list(results)
+    except (ValueError, KeyError, TypeError):
+        raise CliError(f"{path} is not a nuScenes results JSON (an object with 'results')"
+                       ) from None
+    with tempfile.TemporaryDirectory() as tmp:
+        gt = gt_path
+        if gt is None:   # no ground truth needed to calibrate: an empty one per sample
+            gt = str(Path(tmp) / "gt.json")
+            Path(gt).write_text(json.dumps({"results": {t: [] for t in tokens}}))
+        dump = load_nuscenes(str(path), str(_existing(gt)), classes=profile.classes)
+    boxes = [box for t in tokens for box in results[t]]
+    if any("detection_logits" in box for box in boxes):
+        out = _calibrated(dump, profile)
+    else:
+        out = profile.calibrate(
+            scores=np.array([float(b["detection_score"]) for b in boxes]),
+            labels=dump.det_labels, boxes=dump.final_boxes,
+            covariances=dump.det_cov if profile.cov_source == "given" else None,
+            ego_xy=dump.ego_xy(dump.det_frame))
+    for box, score, raw, cov in zip(boxes, out.scores, out.scores_raw, out.covariances,
+                                    strict=True):
+        box["detection_score"] = float(score)
+        box["detection_score_raw"] = float(raw)
+        box["covariance"] = cov.tolist()
+    meta = doc.get("meta") if isinstance(doc.get("meta"), dict) else {}
+    doc["meta"] = {**meta, "cov_dims": list(profile.cov_dims)}
+    return doc
+
+
+# -- helpers ---------------------------------------------------------------------------------
+def load_input(path: str, nuscenes_gt: str | None) -> tuple[Any, str]:
+    """(Dump, sha256) from an NPZ dump or a nuScenes results + ground-truth JSON pair.
+
+    The pair's sha256 is that of the two files' hex digests joined by a newline.
+    """
+    from calibrators.io import file_sha256, load_dump, load_nuscenes
+
+    p = _existing(path)
+    if nuscenes_gt is not None:
+        gt = _existing(nuscenes_gt)
+        dump = load_nuscenes(str(p), str(gt))
+        pair = f"{file_sha256(str(p))}\n{file_sha256(str(gt))}"
+        return dump, hashlib.sha256(pair.encode()).hexdigest()
+    if p.suffix.lower() == ".json":
+        raise CliError(f"{path} is a JSON file: a nuScenes results JSON needs --nuscenes-gt "
+                       f"GT.json")
+    return load_dump(str(p)), file_sha256(str(p))
+
+
+def load_profile(path: str) -> Any:
+    """A CalibrationProfile from a JSON file (ValueError naming the bad key)."""
+    from calibrators.profile import CalibrationProfile
+
+    text = _existing(path).read_bytes()
+    try:
+        return CalibrationProfile.from_json(text)
+    except ValueError as exc:
+        raise CliError(f"{path} is not a valid profile: {exc}") from None
+
+
+def _calibrated(dump: Any, profile: Any) -> Any:
+    """`profile.calibrate` on the dump's final-layer detections."""
+    if tuple(profile.classes) != tuple(dump.classes) or profile.score_mode != dump.score_mode:
+        raise CliError(f"profile is for {profile.score_mode} classes {list(profile.classes)} but "
+                       f"the dump has {dump.score_mode} classes {list(dump.classes)}")
+    return profile.calibrate(
+        logits=dump.det_logits[:, -1], boxes=dump.final_boxes,
+        covariances=dump.det_cov if profile.cov_source == "given" else None,
+        layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
+        ego_xy=dump.ego_xy(dump.det_frame))
+
+
+def _existing(path: str) -> Path:
+    p = Path(path)
+    if not p.is_file():
+        raise CliError(f"{path}: no such file")
+    return p
+
+
+def _write_text(path: str, text: str) -> None:
+    """Write `text` to `path` atomically (`-` = stdout)."""
+    if path == "-":
+        sys.stdout.write(text + "\n")
+        return
+    target = Path(path)
+    fd, tmp = tempfile.mkstemp(dir=target.parent if str(target.parent) else ".",
+                               prefix=f".{target.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as fh:
+            fh.write(text + "\n")
+        os.replace(tmp, target)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _progress(stage: str, fraction: float) -> None:
+    print(f"detcal fit: {stage} ({fraction:.0%})", file=sys.stderr, flush=True)
+
+
+def _ap_table(ev: dict, ev_after: dict | None) -> str:
+    thresholds = [str(t) for t in ev["thresholds"]]
+    head = f"mAP {ev['mean_ap']:.4f}  NDS {ev['nd_score']:.4f}"
+    if ev_after is not None:
+        head += f"  (calibrated scores: mAP {ev_after['mean_ap']:.4f})"
+    lines = [head, f"{'class':<22}" + "".join(f"{'AP@' + t:>10}" for t in thresholds)
+             + f"{'mean':>10}"]
+    for name, by_t in ev["ap"].items():
+        cells = "".join(_num(by_t.get(t)) for t in thresholds)
+        lines.append(f"{name:<22}{cells}{_num(ev['class_ap'].get(name))}")
+    return "\n".join(lines)
+
+
+def _num(value: float | None) -> str:
+    return f"{'-':>10}" if value is None else f"{value:>10.4f}"

@@ -1,0 +1,130 @@
+"""The arrays a fit and a report share: matching, TS labels, TP residuals, raw covariances.
+
+All functions take a validated `Dump` (N detections, G ground-truth boxes, F frames) and use its
+final decoder layer. Kept apart from `fit.py` and `report.py` so both use one definition.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import replace
+
+import numpy as np
+
+from calibrators._checks import check_choice
+from calibrators.covariance import layer_spread
+from calibrators.dump import BOX_FIELDS, Dump
+from calibrators.matching import MatchResult, match
+
+COV_SOURCES = ("given", "layers", "none")
+_YAW = BOX_FIELDS.index("yaw")
+
+
+def check_dims(dims: str | Sequence[str]) -> tuple[str, ...]:
+    """Regression dims as a tuple of distinct box fields; `"x,y"` is accepted for `("x", "y")`."""
+    if isinstance(dims, str):
+        dims = [d.strip() for d in dims.split(",") if d.strip()]
+    out = tuple(str(d) for d in dims)
+    if not out:
+        raise ValueError("dims must name at least one box field")
+    for d in out:
+        if d not in BOX_FIELDS:
+            raise ValueError(f"dims must be box fields {list(BOX_FIELDS)}, got {d!r}")
+    if len(set(out)) != len(out):
+        raise ValueError(f"dims has duplicate fields: {list(out)}")
+    return out
+
+
+def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> str:
+    """The covariance source to use: `given`, `layers` or `none`.
+
+    `auto` is `given` when the dump carries `det_cov` over exactly `dims`, else `layers` when
+    it has at least two decoder layers, else `none`. An explicit source the dump cannot
+    provide raises a ValueError naming `cov_source`.
+    """
+    check_choice("cov_source", cov_source, ("auto", *COV_SOURCES))
+    if cov_source == "auto":
+        if dump.det_cov is not None and dump.cov_dims == dims:
+            return "given"
+        return "layers" if dump.n_layers >= 2 else "none"
+    if cov_source == "given":
+        if dump.det_cov is None:
+            raise ValueError("cov_source='given' but the dump has no det_cov")
+        if dump.cov_dims != dims:
+            raise ValueError(f"cov_source='given' needs the dump's cov_dims {list(dump.cov_dims)} "
+                             f"to equal dims {list(dims)}")
+    if cov_source == "layers" and dump.n_layers < 2:
+        raise ValueError(f"cov_source='layers' needs at least 2 decoder layers, the dump has "
+                         f"{dump.n_layers}")
+    return cov_source
+
+
+def raw_covariances(dump: Dump, source: str, dims: tuple[str, ...]) -> np.ndarray | None:
+    """`[N, D, D]` uncalibrated covariance of every detection from `source`, or None (`none`)."""
+    if source == "given":
+        return dump.det_cov
+    if source == "layers":
+        return layer_spread(dump.det_boxes, dims)
+    return None
+
+
+def match_dump(dump: Dump, threshold: float) -> MatchResult:
+    """nuScenes matching of the final-layer detections to the ground truth at `threshold` m.
+
+    No class range filter: a profile must calibrate every detection the detector emits,
+    and the far ones carry most of the depth signal (see `fit_profile`).
+    """
+    return match(dump.det_frame, dump.det_labels, dump.det_scores, dump.final_boxes[:, :2],
+                 dump.gt_frame, dump.gt_labels, dump.gt_boxes[:, :2], threshold=threshold)
+
+
+def ts_labels(dump: Dump, tp: np.ndarray) -> np.ndarray:
+    """`[N]` temperature-scaling labels from the TP mask `[N]`.
+
+    sigmoid: 1 for a TP of its predicted class, else 0. softmax: the target column, i.e. the
+    class of the matched ground truth (= the predicted class, matching is per class) for a TP,
+    else the no-object column C.
+    """
+    tp = np.asarray(tp, dtype=bool)
+    if dump.score_mode == "sigmoid":
+        return tp.astype(np.int64)
+    return np.where(tp, dump.det_labels, len(dump.classes)).astype(np.int64)
+
+
+def tp_residuals(dump: Dump, gt_index: np.ndarray, tp: np.ndarray,
+                 dims: tuple[str, ...]) -> np.ndarray:
+    """`[M, D]` residuals (matched ground truth − final box) over `dims` of the M TPs.
+
+    A yaw residual is wrapped to (−π, π].
+    """
+    cols = [BOX_FIELDS.index(d) for d in dims]
+    tp = np.asarray(tp, dtype=bool)
+    res = dump.gt_boxes[np.asarray(gt_index)[tp]][:, cols] - dump.final_boxes[tp][:, cols]
+    for j, c in enumerate(cols):
+        if c == _YAW:
+            res[:, j] = np.pi - np.mod(np.pi - res[:, j], 2.0 * np.pi)
+    return res
+
+
+def select_detections(dump: Dump, keep: np.ndarray) -> Dump:
+    """A dump with only the detections where the boolean `[N]` mask `keep` is True."""
+    keep = np.asarray(keep, dtype=bool)
+    return replace(dump, det_frame=dump.det_frame[keep], det_logits=dump.det_logits[keep],
+                   det_boxes=dump.det_boxes[keep],
+                   det_cov=None if dump.det_cov is None else dump.det_cov[keep])
+
+
+def split_frames(dump: Dump, holdout: float, seed: int) -> tuple[Dump, Dump | None]:
+    """(fit part, held-out part or None): a seeded random `holdout` fraction of the frames.
+
+    At least one frame is held out when `holdout > 0`; at least one must remain to fit on.
+    """
+    if holdout <= 0:
+        return dump, None
+    n_hold = max(1, int(round(holdout * dump.n_frames)))
+    if n_hold >= dump.n_frames:
+        raise ValueError(f"holdout={holdout} leaves no frame to fit on "
+                         f"({dump.n_frames} frames)")
+    held = np.zeros(dump.n_frames, dtype=bool)
+    held[np.random.default_rng(seed).permutation(dump.n_frames)[:n_hold]] = True
+    return dump.select_frames(~held), dump.select_frames(held)

@@ -1,0 +1,56 @@
+"""Confidence ellipses of 2-D Gaussian position uncertainty (the `x, y` block of `Σ'`).
+
+For `Σ = [[a, b], [b, c]]` with eigenvalues `λ_max >= λ_min`, the region holding a fraction
+`p` of the Gaussian's mass is the ellipse with semi-axes `sqrt(λ · χ²₂(p))`, where
+`χ²₂(p) = -2 log(1 - p)` is the chi-square (2 degrees of freedom) quantile, and the major
+axis at angle `θ = atan2(2b, a - c) / 2` from +x, in (-pi/2, pi/2] (0 for an isotropic `Σ`).
+The closed forms are exact for 2x2 matrices and vectorise over any batch.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import numpy as np
+
+from calibrators._checks import as_float_array, check_covariances
+
+
+class Ellipse(NamedTuple):
+    """Semi-axes and major-axis angle; arrays `[N]` for a batch, floats for one matrix.
+
+    semi_major, semi_minor : lengths in the covariance's units (metres for x, y).
+    angle : radians of the major axis from +x, counter-clockwise, in (-pi/2, pi/2].
+    """
+
+    semi_major: np.ndarray | float
+    semi_minor: np.ndarray | float
+    angle: np.ndarray | float
+
+
+def chi2_2_quantile(confidence: float) -> float:
+    """`χ²₂(p)`, the chi-square quantile with 2 degrees of freedom, `-2 log(1 - p)`."""
+    p = float(confidence)
+    if not 0.0 < p < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence!r}")
+    return float(-2.0 * np.log1p(-p))
+
+
+def ellipse(cov: np.ndarray, confidence: float = 0.95) -> Ellipse:
+    """Confidence ellipse of `cov [N, 2, 2]` (arrays `[N]`) or `cov [2, 2]` (floats)."""
+    q = chi2_2_quantile(confidence)
+    arr = as_float_array("cov", cov)
+    single = arr.ndim == 2
+    batch = arr[None] if single else arr
+    check_covariances("cov", batch, dim=2)
+    a, b, c = batch[:, 0, 0], batch[:, 0, 1], batch[:, 1, 1]
+    mean = 0.5 * (a + c)
+    radius = np.hypot(0.5 * (a - c), b)
+    major = np.sqrt(q * np.maximum(mean + radius, 0.0))
+    minor = np.sqrt(q * np.maximum(mean - radius, 0.0))
+    # + 0.0 turns b = -0.0 into +0.0 so that a diagonal Σ with a < c gives +pi/2, not -pi/2.
+    angle = 0.5 * np.arctan2(2.0 * b + 0.0, a - c)
+    angle = np.where(angle <= -0.5 * np.pi, angle + np.pi, angle)  # same axis, in range
+    if single:
+        return Ellipse(float(major[0]), float(minor[0]), float(angle[0]))
+    return Ellipse(major, minor, angle)
