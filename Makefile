@@ -4,7 +4,10 @@ VENV ?= .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: install run test lint bench clean
+BENCH_VENV ?= .bench-venv
+BENCH_STAMP := $(BENCH_VENV)/.installed-stamp
+
+.PHONY: install browser run test lint bench clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PYTHON) -m venv $(VENV)
@@ -20,12 +23,28 @@ run: install
 lint: install
 	$(PY) -m ruff check .
 
-test: install
+# The dashboard test drives Debian's headless Chromium; install it once if it is missing.
+browser:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  echo "installing Debian chromium for the dashboard test"; \
+	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null; }
+
+test: install browser
 	$(PY) -m ruff check .
 	$(PY) -m pytest -q
 
-bench: install
-	$(PY) -m bench
+# Benchmarks compare against reference implementations (netcal, nuscenes-devkit) that are
+# installed only into their own environment, never into .venv.
+$(BENCH_STAMP): pyproject.toml constraints.txt bench/requirements-reference.txt bench/requirements-reference-devkit.txt
+	$(PYTHON) -m venv $(BENCH_VENV)
+	$(BENCH_VENV)/bin/pip install --quiet --upgrade pip
+	$(BENCH_VENV)/bin/pip install --quiet -c constraints.txt -e '.[all,dev]' -r bench/requirements-reference.txt
+	$(BENCH_VENV)/bin/pip install --quiet -c constraints.txt --no-deps nuscenes-devkit==1.2.0
+	$(BENCH_VENV)/bin/pip install --quiet -c constraints.txt -r bench/requirements-reference-devkit.txt
+	touch $(BENCH_STAMP)
+
+bench: $(BENCH_STAMP)
+	$(BENCH_VENV)/bin/python -m bench
 
 clean:
 	rm -rf $(VENV) .pytest_cache .ruff_cache
