@@ -1,11 +1,15 @@
-"""Run every benchmark in turn; each prints its figures and rewrites its docs/benchmarks.md section."""
+"""Run every benchmark in turn; each prints its figures and rewrites its docs section."""
 
 import importlib
 
-BENCHMARKS = ("bench.bench_fit", "bench.bench_match", "bench.bench_detectors", "bench.bench_service")
+BENCHMARKS = (
+    "bench.bench_fit",
+    "bench.bench_match",
+    "bench.bench_detectors",
+    "bench.bench_service",
+)
 
 if __name__ == "__main__":
     for name in BENCHMARKS:
         print(f"== {name}", flush=True)
-        module = importlib.import_module(name)
-        module.main([])
+        importlib.import_module(name).main([])
