@@ -1,0 +1,79 @@
+"""In-memory cache of parsed profiles; stored versions are immutable, so a version never goes stale.
+
+The active *pointer* is read from the store on every lookup (one indexed read), so an
+activation by another worker process or a finished fit is seen by the next request.
+"""
+
+from __future__ import annotations
+
+import re
+import threading
+from dataclasses import dataclass
+
+from app.errors import RequestError
+from app.store import NotFoundError, ProfileRecord, Store
+from calibrators.profile import CalibrationProfile
+
+_REF = re.compile(r"^(?P<name>[A-Za-z0-9_.\-]+)(@(?P<version>\d+))?$")
+
+
+@dataclass(frozen=True)
+class LoadedProfile:
+    """A stored profile version and its parsed CalibrationProfile."""
+
+    record: ProfileRecord
+    profile: CalibrationProfile
+
+    def ref(self) -> dict[str, object]:
+        """The `ProfileRef` body of responses."""
+        r = self.record
+        return {"id": r.ref, "name": r.name, "version": r.version, "sha256": r.sha256}
+
+
+class ProfileCache:
+    """Parsed profiles keyed by `(name, version)`, resolved against the store's active pointer."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self._cache: dict[tuple[str, int], LoadedProfile] = {}
+        self._lock = threading.Lock()
+
+    def load_active(self) -> list[LoadedProfile]:
+        """Parse and cache the active version of every name (at start-up)."""
+        loaded = []
+        for name, version in self.store.active_versions().items():
+            loaded.append(self._version(name, version))
+        return loaded
+
+    def cached(self) -> list[LoadedProfile]:
+        """Everything parsed so far."""
+        with self._lock:
+            return list(self._cache.values())
+
+    def resolve(self, ref: str | None, default: str, loc: tuple[str, ...] = ("body", "profile")
+                ) -> LoadedProfile:
+        """The profile for `name` (active version) or `name@version`; 404 if unknown."""
+        text = default if ref is None else ref
+        m = _REF.match(text)
+        if m is None:
+            raise RequestError(list(loc), f"profile must be 'name' or 'name@version', got "
+                                          f"{text!r}")
+        name = m["name"]
+        if m["version"] is not None:
+            return self._version(name, int(m["version"]))
+        version = self.store.active_version(name)
+        if version is None:
+            raise NotFoundError(f"profile {name!r} does not exist")
+        return self._version(name, version)
+
+    def _version(self, name: str, version: int) -> LoadedProfile:
+        key = (name, version)
+        with self._lock:
+            hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        record = self.store.get(name, version)
+        loaded = LoadedProfile(record, CalibrationProfile.from_json(record.json))
+        with self._lock:
+            self._cache[key] = loaded
+        return loaded

@@ -1,0 +1,54 @@
+"""`detcal serve`: run the API with uvicorn (optionally bootstrapping a first profile)."""
+
+from __future__ import annotations
+
+import argparse
+import os
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the `serve` subcommand."""
+    p = subparsers.add_parser(
+        "serve", help="serve the calibration API and dashboard",
+        description="Serve the HTTP API and dashboard with uvicorn. Options override the "
+                    "DETCAL_* environment (DETCAL_HOST, DETCAL_PORT, DETCAL_WORKERS, "
+                    "DETCAL_DATA_DIR, DETCAL_DATABASE_URL, DETCAL_ADMIN_TOKEN, ...).")
+    p.add_argument("--host", help="bind address (default: DETCAL_HOST or 127.0.0.1)")
+    p.add_argument("--port", type=int, help="port (default: DETCAL_PORT or 8000)")
+    p.add_argument("--workers", type=int, help="worker processes (default: 1)")
+    p.add_argument("--data-dir", help="store, uploads and token file (default: ./data)")
+    p.add_argument("--bootstrap", action="store_true",
+                   help="first start: generate an admin token file if none is configured and "
+                        "fit a default profile from the bundled lidar detector if the store "
+                        "has none")
+    p.add_argument("--log-level", default="info",
+                   choices=("critical", "error", "warning", "info", "debug"))
+    p.set_defaults(func=serve)
+
+
+def serve(args: argparse.Namespace) -> int:
+    """Apply the options to the environment (worker processes read it) and run uvicorn."""
+    import uvicorn
+
+    from app.settings import Settings, get_settings
+
+    for flag, env in (("host", "HOST"), ("port", "PORT"), ("workers", "WORKERS"),
+                      ("data_dir", "DATA_DIR")):
+        value = getattr(args, flag)
+        if value is not None:
+            os.environ[f"DETCAL_{env}"] = str(value)
+    get_settings.cache_clear()
+    settings = Settings()
+    if args.bootstrap:
+        from app.bootstrap import ensure_admin_token, ensure_default_profile
+
+        ensure_admin_token(settings)
+        try:
+            ensure_default_profile(settings)
+        except (ImportError, FileNotFoundError) as exc:
+            print(f"detcal: no default profile fitted ({exc}); upload a dump to POST /v1/fit")
+    print(f"detcal: serving on http://{settings.host}:{settings.port}/ "
+          f"(data in {settings.data_dir.resolve()})", flush=True)
+    uvicorn.run("app.main:create_app", factory=True, host=settings.host, port=settings.port,
+                workers=settings.workers, log_level=args.log_level)
+    return 0

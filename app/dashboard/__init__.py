@@ -1,0 +1,1 @@
+"""The dashboard: server-rendered HTML with inline SVG plots drawn by matplotlib (offline)."""

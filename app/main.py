@@ -1,0 +1,79 @@
+"""The FastAPI application: `create_app(settings)` and the lifespan that opens the store,
+loads the active profiles and starts the fit-job runner."""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
+
+from fastapi import FastAPI
+
+from app.body import install_openapi
+from app.cache import ProfileCache
+from app.dashboard.page import DashboardRenderer
+from app.detect import DetectorService
+from app.errors import install_handlers
+from app.jobs import JobRunner
+from app.limits import BodySizeLimitMiddleware
+from app.metrics import MetricsMiddleware, ServiceMetrics
+from app.routers import calibrate, dashboard, detect, fit, health, jobs, metrics, profiles
+from app.settings import Settings, get_settings
+from app.store import Store
+
+log = logging.getLogger("detcal.app")
+
+DESCRIPTION = """Post-hoc calibration of DETR-family 3D detectors: fit a versioned calibration
+profile (temperature + per-class depth scaling) on a validation dump, then turn raw
+detections into calibrated scores, covariances and uncertainty ellipses.
+Admin endpoints need `Authorization: Bearer <DETCAL_ADMIN_TOKEN>`."""
+
+
+def create_app(settings: Settings | None = None) -> FastAPI:
+    """A new app bound to `settings` (default: read from the environment)."""
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+        store = Store(settings.sqlalchemy_url, settings.dumps_dir)
+        cache = ProfileCache(store)
+        try:
+            loaded = cache.load_active()
+            log.info("loaded active profiles: %s", ", ".join(p.record.ref for p in loaded)
+                     or "none")
+        except ValueError as exc:  # a stored profile that no longer parses must not stop us
+            log.error("could not load the active profiles: %s", exc)
+        runner = JobRunner(store, workers=settings.fit_workers)
+        app.state.store, app.state.cache, app.state.runner = store, cache, runner
+        app.state.metrics.attach_store(store)
+        runner.start()
+        try:
+            yield
+        finally:
+            runner.stop()
+            store.close()
+
+    app = FastAPI(title="detcal", version=_version(), description=DESCRIPTION,
+                  lifespan=lifespan)
+    app.state.settings = settings
+    app.state.metrics = ServiceMetrics()
+    app.state.detectors = DetectorService()
+    app.state.dashboard = DashboardRenderer()
+    install_handlers(app)
+    install_openapi(app)
+    for module in (health, metrics, calibrate, fit, jobs, profiles, detect, dashboard):
+        app.include_router(module.router)
+    app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes,
+                       upload_bytes=settings.max_upload_bytes)
+    app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    return app
+
+
+def _version() -> str:
+    from importlib import metadata
+
+    try:
+        return metadata.version("detcal")
+    except metadata.PackageNotFoundError:
+        return "0"

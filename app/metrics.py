@@ -1,0 +1,101 @@
+"""Prometheus metrics of one app instance and the ASGI middleware that records requests."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Iterator
+from typing import Any
+
+from prometheus_client import CollectorRegistry, Counter, Histogram
+from prometheus_client.core import GaugeMetricFamily
+from prometheus_client.registry import Collector
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from app.store import Store
+from app.store.records import JOB_STATES
+
+_BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
+
+
+class _StoreCollector(Collector):
+    """Fit jobs by state and the active version of every profile, read at scrape time."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+
+    def collect(self) -> Iterator[GaugeMetricFamily]:
+        jobs = GaugeMetricFamily("detcal_fit_jobs", "Fit jobs by state.", labels=["state"])
+        counts = self.store.job_counts()
+        for state in JOB_STATES:
+            jobs.add_metric([state], counts.get(state, 0))
+        yield jobs
+        active = GaugeMetricFamily("detcal_active_profile_version",
+                                   "Active version of each profile name.", labels=["profile"])
+        for name, version in sorted(self.store.active_versions().items()):
+            active.add_metric([name], version)
+        yield active
+
+
+class ServiceMetrics:
+    """The registry and instruments of one app (a fresh registry per app keeps tests apart)."""
+
+    def __init__(self) -> None:
+        self.registry = CollectorRegistry()
+        self.started = time.time()
+        self.requests = Counter("detcal_http_requests", "HTTP requests by route.",
+                                ["method", "route", "status"], registry=self.registry)
+        self.latency = Histogram("detcal_http_request_duration_seconds",
+                                 "Server time per request by route.", ["method", "route"],
+                                 buckets=_BUCKETS, registry=self.registry)
+        self.detections = Counter("detcal_detections_calibrated",
+                                  "Detections calibrated.", ["profile"], registry=self.registry)
+        self._store_collector: _StoreCollector | None = None
+
+    def attach_store(self, store: Store) -> None:
+        """Report fit jobs and active versions of `store` (once the lifespan opened it)."""
+        if self._store_collector is not None:
+            self.registry.unregister(self._store_collector)
+        self._store_collector = _StoreCollector(store)
+        self.registry.register(self._store_collector)
+
+    def request_totals(self) -> dict[str, float]:
+        """Request count per route (all methods and statuses), for the dashboard."""
+        totals: dict[str, float] = {}
+        for metric in self.requests.collect():
+            for sample in metric.samples:
+                if sample.name.endswith("_total"):
+                    route = sample.labels["route"]
+                    totals[route] = totals.get(route, 0.0) + sample.value
+        return totals
+
+
+class MetricsMiddleware:
+    """Counts requests and observes latency per route template; adds a `Server-Timing` header."""
+
+    def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
+        self.app, self.metrics = app, metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        start = time.perf_counter()
+        status = {"code": 500}
+
+        async def send_wrapper(message: Message) -> None:
+            if message["type"] == "http.response.start":
+                status["code"] = message["status"]
+                dur = (time.perf_counter() - start) * 1000.0
+                headers = list(message.get("headers", []))
+                headers.append((b"server-timing", f"app;dur={dur:.3f}".encode()))
+                message = {**message, "headers": headers}
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            route: Any = scope.get("route")
+            path = getattr(route, "path", None) or "unmatched"
+            method = scope.get("method", "GET")
+            self.metrics.requests.labels(method, path, str(status["code"])).inc()
+            self.metrics.latency.labels(method, path).observe(time.perf_counter() - start)

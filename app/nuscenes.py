@@ -1,0 +1,64 @@
+"""Calibrate a nuScenes results document: boxes -> detections (score + class name), and back.
+
+Each box keeps every key it came with; `detection_score` becomes the calibrated score and
+the box gains `detection_score_raw`, `covariance` (calibrated, over the profile's dims) and
+`ellipse`. With `detection_logits`, the label is their arg-max (as the dump formats
+define). The document gains a top-level `calibration` key naming the profile version.
+Keys the devkit does not know are ignored by it.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+from app.cache import LoadedProfile
+from app.calibration import calibrate_frames
+from app.schemas.calibrate import DetectionIn, FrameIn
+from app.schemas.nuscenes import NuScenesBox, NuScenesResults
+
+
+def box_to_detection(box: NuScenesBox) -> DetectionIn:
+    """A detection from one `DetectionBox`: its logits if it has `detection_logits`, else its
+    score and class name. The centre is taken relative to the ego (`ego_translation`) so the
+    distance is right; covariances and ellipses do not depend on where the centre is."""
+    w, x, y, z = box.rotation
+    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    rel = box.ego_translation
+    centre = rel if rel is not None and any(rel) else box.translation   # zeros: unset
+    logits = box.detection_logits
+    return DetectionIn.model_construct(
+        id=None, logits=logits, layer_logits=None, scores=None,
+        score=None if logits is not None else box.detection_score,
+        label=None if logits is not None else box.detection_name,
+        box=[*centre, *box.size, yaw, *box.velocity], layer_boxes=None,
+        covariance=box.covariance)
+
+
+def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: float
+                      ) -> tuple[dict[str, Any], int]:
+    """The calibrated results document and the number of boxes calibrated."""
+    tokens = list(doc.results)
+    frames = [FrameIn.model_construct(frame_id=t, ego_translation=None,
+                                      detections=[box_to_detection(b) for b in doc.results[t]])
+              for t in tokens]
+    rows = calibrate_frames(loaded, frames, confidence,
+                            locate=lambda fi, di: ["body", "results", tokens[fi], di])
+    n = 0
+    results: dict[str, list[dict[str, Any]]] = {}
+    for token, frame_rows in zip(tokens, rows, strict=True):
+        out = []
+        for box, row in zip(doc.results[token], frame_rows, strict=True):
+            item = box.model_dump(exclude_none=True)
+            item["detection_name"] = row["label"]
+            item["detection_score"] = row["score"]
+            item["detection_score_raw"] = row["score_raw"]
+            item["covariance"] = row["covariance"]
+            item["ellipse"] = row["ellipse"]
+            out.append(item)
+        n += len(out)
+        results[token] = out
+    body = doc.model_dump(exclude={"results"})
+    body["results"] = results
+    body["calibration"] = {"profile": loaded.ref(), "ellipse_confidence": confidence}
+    return body, n

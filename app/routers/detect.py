@@ -1,0 +1,74 @@
+"""POST /v1/detect: run a bundled detector on a simulated frame (or points) and calibrate."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, Depends, Request
+from fastapi.responses import JSONResponse, Response
+
+from app.body import body_doc, json_body, json_response
+from app.cache import LoadedProfile
+from app.calibration import calibrate_frames
+from app.deps import CacheDep, MetricsDep, SettingsDep
+from app.detect import DetectorOutput, DetectorService, DetectorUnavailable
+from app.errors import RequestError
+from app.schemas.calibrate import DetectionIn, DetectRequest, DetectResponse, FrameIn
+from app.schemas.common import ErrorResponse
+
+router = APIRouter(prefix="/v1", tags=["detect"],
+                   responses={404: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
+                              503: {"model": ErrorResponse}})
+
+
+def _detectors(request: Request) -> DetectorService:
+    return request.app.state.detectors
+
+
+DetectorsDep = Annotated[DetectorService, Depends(_detectors)]
+
+
+def detections_of(out: DetectorOutput, loaded: LoadedProfile) -> list[DetectionIn]:
+    """Request-shaped detections (per-layer logits and boxes) from raw detector outputs."""
+    prof = loaded.profile
+    if tuple(prof.classes) != out.classes:
+        raise RequestError(["body", "profile"],
+                           f"profile {loaded.record.ref} is for classes {list(prof.classes)} but "
+                           f"the detector predicts {list(out.classes)}")
+    covs = None
+    if prof.cov_source == "given" and len(out.layer_logits):
+        from calibrators.covariance import layer_spread
+
+        covs = layer_spread(out.layer_boxes, dims=tuple(prof.cov_dims)).tolist()
+    logits, boxes = out.layer_logits.tolist(), out.layer_boxes.tolist()
+    return [DetectionIn.model_construct(
+        id=i, logits=None, layer_logits=logits[i], scores=None, score=None, label=None,
+        box=boxes[i][-1], layer_boxes=boxes[i], covariance=None if covs is None else covs[i])
+        for i in range(len(logits))]
+
+
+@router.post("/detect", response_model=DetectResponse, openapi_extra=body_doc(DetectRequest))
+def detect(body: Annotated[DetectRequest, Depends(json_body(DetectRequest))], cache: CacheDep,
+           settings: SettingsDep, metrics: MetricsDep,
+           detectors: DetectorsDep) -> Response:
+    """Detect on a simulated frame with a bundled detector and calibrate with a profile."""
+    loaded = cache.resolve(body.profile, settings.default_profile)
+    try:
+        out = detectors.run(body.sensor, body.seed or 0, body.points, body.min_score)
+    except DetectorUnavailable as exc:
+        return JSONResponse({"detail": str(exc)}, status_code=503)
+    seed = None if body.points is not None else (body.seed or 0)
+    frame = FrameIn.model_construct(frame_id=f"{body.sensor}-{seed}", ego_translation=None,
+                                    detections=detections_of(out, loaded))
+    rows = calibrate_frames(loaded, [frame], body.ellipse_confidence)[0]
+    metrics.detections.labels(loaded.record.name).inc(len(rows))
+    prof = loaded.profile
+    gt = [{"label": prof.classes[int(c)], "box": b} for c, b in
+          zip(out.gt_labels.tolist(), out.gt_boxes.tolist(), strict=True)]
+    return json_response({
+        "profile": loaded.ref(), "classes": list(prof.classes), "cov_dims": list(prof.cov_dims),
+        "ellipse_confidence": body.ellipse_confidence, "sensor": body.sensor,
+        "seed": seed,
+        "frames": [{"frame_id": frame.frame_id, "detections": rows}],
+        "ground_truth": gt if body.points is None else None,
+    })

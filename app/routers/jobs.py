@@ -1,0 +1,40 @@
+"""GET /v1/jobs/{id}: a fit job's state, progress, and the version and report it produced."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+from fastapi import APIRouter, Path, Query
+
+from app.deps import StoreDep
+from app.schemas.common import ErrorResponse, ProfileRef
+from app.schemas.profiles import JobOut
+from app.store import JobRecord, Store
+
+router = APIRouter(prefix="/v1/jobs", tags=["fit"], responses={404: {"model": ErrorResponse}})
+
+
+def job_out(store: Store, job: JobRecord) -> JobOut:
+    """The response body of a job (with the profile's report once it succeeded)."""
+    out = JobOut(**{k: v for k, v in vars(job).items()
+                    if k not in ("profile_id", "profile_version")})
+    if job.profile_version is not None:
+        r = store.get(job.name, job.profile_version)
+        out.profile = ProfileRef(id=r.ref, name=r.name, version=r.version, sha256=r.sha256)
+        out.report = json.loads(r.json).get("report")
+    return out
+
+
+@router.get("")
+def list_jobs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=100)] = 20) -> list[JobOut]:
+    """The newest fit jobs, newest first (without reports)."""
+    return [JobOut(**{k: v for k, v in vars(j).items()
+                      if k not in ("profile_id", "profile_version")})
+            for j in store.recent_jobs(limit)]
+
+
+@router.get("/{job_id}")
+def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], store: StoreDep) -> JobOut:
+    """State, progress and error of a fit job; its version and report when it succeeded."""
+    return job_out(store, store.get_job(job_id))

@@ -1,0 +1,16 @@
+"""GET /metrics: Prometheus exposition of this process's metrics."""
+
+from __future__ import annotations
+
+from fastapi import APIRouter, Response
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+
+from app.deps import MetricsDep
+
+router = APIRouter(tags=["health"])
+
+
+@router.get("/metrics", response_class=Response)
+def metrics(m: MetricsDep) -> Response:
+    """Request counts and latency per route, detections calibrated, fit jobs, active versions."""
+    return Response(generate_latest(m.registry), media_type=CONTENT_TYPE_LATEST)

@@ -1,0 +1,54 @@
+"""Profiles: list names, list versions, read one version, activate (roll back) a version."""
+
+from __future__ import annotations
+
+import json
+from typing import Annotated
+
+from fastapi import APIRouter, Path
+
+from app.deps import AdminDep, StoreDep
+from app.schemas.common import ErrorResponse, ProfileName
+from app.schemas.profiles import ProfileDetail, ProfileSummary, ProfileVersions, VersionSummary
+from app.store import ProfileRecord
+
+router = APIRouter(prefix="/v1/profiles", tags=["profiles"],
+                   responses={404: {"model": ErrorResponse}})
+
+Version = Annotated[int, Path(ge=1, description="Version number (1, 2, ...).")]
+
+
+def _summary(r: ProfileRecord) -> VersionSummary:
+    return VersionSummary(id=r.ref, name=r.name, version=r.version, active=r.active,
+                          created_at=r.created_at, sha256=r.sha256, dump_sha256=r.dump_sha256,
+                          job_id=r.job_id)
+
+
+@router.get("")
+def list_profiles(store: StoreDep) -> list[ProfileSummary]:
+    """Every profile name with its active version."""
+    return [ProfileSummary(**vars(s)) for s in store.names()]
+
+
+@router.get("/{name}")
+def list_versions(name: ProfileName, store: StoreDep) -> ProfileVersions:
+    """Every version of one profile name, oldest first."""
+    versions = store.versions(name)
+    active = next((v.version for v in versions if v.active), None)
+    return ProfileVersions(name=name, active_version=active,
+                           versions=[_summary(v) for v in versions])
+
+
+@router.get("/{name}/{version}")
+def get_version(name: ProfileName, version: Version, store: StoreDep) -> ProfileDetail:
+    """One version's parameters and before/after report."""
+    r = store.get(name, version)
+    return ProfileDetail(**_summary(r).model_dump(), profile=json.loads(r.json))
+
+
+@router.post("/{name}/{version}/activate",
+             responses={401: {"model": ErrorResponse}, 403: {"model": ErrorResponse}})
+def activate(name: ProfileName, version: Version, store: StoreDep, _: AdminDep
+             ) -> VersionSummary:
+    """Make a version the active one of its name, atomically (rolling back = an older one)."""
+    return _summary(store.activate(name, version))

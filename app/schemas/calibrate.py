@@ -1,0 +1,214 @@
+"""Request and response models of POST /v1/calibrate and POST /v1/detect."""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Self
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+
+from app.schemas.common import Finite, Probability, ProfileRef
+
+Row = list[Finite]
+
+_EXAMPLE_DETECTION = {
+    "logits": [2.1, -3.0, -4.2, -5.0, -4.1, -3.3, -4.4, -4.9, -5.1, -3.8],
+    "box": [12.4, -3.1, 0.9, 1.9, 4.6, 1.7, 0.12, 3.0, 0.1],
+    "covariance": [[0.04, 0.0], [0.0, 0.04]],
+}
+
+
+def _rectangular(name: str, rows: list[list[float]] | None, width: int | None = None) -> None:
+    if rows is None:
+        return
+    if not rows:
+        raise ValueError(f"{name} must have at least one row")
+    widths = {len(r) for r in rows}
+    if len(widths) != 1:
+        raise ValueError(f"{name} rows differ in length: {sorted(widths)}")
+    got = widths.pop()
+    if width is not None and got != width:
+        raise ValueError(f"{name} rows must have {width} values, got {got}")
+
+
+def check_covariance(v: list[list[float]], tol: float = 1e-9) -> None:
+    """Raise a ValueError unless `v` is a square, symmetric, positive semi-definite matrix
+    (2x2 in closed form, the common case; larger ones by eigenvalues)."""
+    _rectangular("covariance", v, len(v))
+    if len(v) == 2:
+        (a, b), (c, d) = v
+        scale = max(abs(a), abs(b), abs(c), abs(d), 1.0)
+        if abs(b - c) > tol * scale:
+            raise ValueError("covariance is not symmetric")
+        low = 0.5 * (a + d) - math.sqrt(0.25 * (a - d) ** 2 + b * b)
+    else:
+        cov = np.asarray(v, dtype=np.float64)
+        scale = max(float(np.abs(cov).max()), 1.0)
+        if np.abs(cov - cov.T).max() > tol * scale:
+            raise ValueError("covariance is not symmetric")
+        low = float(np.linalg.eigvalsh(cov)[0])
+    if low < -tol * scale:
+        raise ValueError(f"covariance is not positive semi-definite (smallest eigenvalue "
+                         f"{low:.3g})")
+
+
+class DetectionIn(BaseModel):
+    """One raw detection: class evidence (exactly one form), a box, optional uncertainty."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_EXAMPLE_DETECTION]})
+
+    id: str | int | None = Field(None, description="Echoed back unchanged.")
+    logits: Row | None = Field(None, min_length=1, description="Final-layer logits `[C']`.")
+    layer_logits: list[Row] | None = Field(
+        None, min_length=1, description="Logits of every decoder layer `[L, C']`, last = final.")
+    scores: list[Probability] | None = Field(
+        None, min_length=1, description="Per-class probabilities `[C']` in the profile's layout.")
+    score: Probability | None = Field(None, description="Score of `label` only (needs `label`).")
+    label: str | Annotated[int, Field(ge=0)] | None = Field(
+        None, description="Class name or index; required with `score`.")
+    box: Row | None = Field(None, description="`x y z w l h yaw vx vy` (7 values: no velocity).")
+    layer_boxes: list[Row] | None = Field(None, description="Box of every decoder layer `[L, 9]`.")
+    covariance: list[Row] | None = Field(
+        None, description="Box covariance `[D, D]` over the profile's `cov_dims`.")
+
+    @field_validator("box")
+    @classmethod
+    def _box(cls, v: list[float] | None) -> list[float] | None:
+        if v is not None and len(v) not in (7, 9):
+            raise ValueError(f"box must have 9 values (x y z w l h yaw vx vy) or 7, got {len(v)}")
+        return v
+
+    @field_validator("layer_logits")
+    @classmethod
+    def _layer_logits(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        _rectangular("layer_logits", v)
+        return v
+
+    @field_validator("layer_boxes")
+    @classmethod
+    def _layer_boxes(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        _rectangular("layer_boxes", v, 9)
+        return v
+
+    @field_validator("covariance")
+    @classmethod
+    def _covariance(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        if v is not None:
+            check_covariance(v)
+        return v
+
+    @model_validator(mode="after")
+    def _one_evidence(self) -> Self:
+        given = [k for k in ("logits", "layer_logits", "scores", "score")
+                 if getattr(self, k) is not None]
+        if len(given) != 1:
+            raise ValueError("give exactly one of logits, layer_logits, scores, score; got "
+                             + (", ".join(given) if given else "none"))
+        if self.score is not None and self.label is None:
+            raise ValueError("score needs label (class name or index)")
+        if self.box is None and self.layer_boxes is None:
+            raise ValueError("give box or layer_boxes")
+        return self
+
+
+class FrameIn(BaseModel):
+    """The detections of one frame; `ego_translation` when boxes are not in the ego frame."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    frame_id: str = Field("frame", examples=["scene-0001-frame-07"])
+    ego_translation: Annotated[Row, Field(min_length=3, max_length=3)] | None = None
+    detections: list[DetectionIn]
+
+
+class CalibrateRequest(BaseModel):
+    """Raw detections of one or more frames to calibrate with a stored profile."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
+        "profile": "lidar", "ellipse_confidence": 0.95,
+        "frames": [{"frame_id": "f0", "detections": [_EXAMPLE_DETECTION]}]}]})
+
+    profile: str | None = Field(
+        None, description="`name` (its active version) or `name@version`; default: the "
+                          "configured default name.", examples=["lidar"])
+    ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
+    frames: list[FrameIn] = Field(min_length=1)
+
+
+class EllipseOut(BaseModel):
+    """Uncertainty ellipse of the x, y block of the calibrated covariance."""
+
+    semi_major: float
+    semi_minor: float
+    angle: float = Field(description="Major-axis angle from +x, radians, in (-pi/2, pi/2].")
+    confidence: float
+
+
+class DetectionOut(BaseModel):
+    """A calibrated detection."""
+
+    id: str | int | None = None
+    label: str
+    label_index: int
+    score: float = Field(description="Calibrated score of `label`.")
+    score_raw: float
+    class_scores: list[float] | None = Field(
+        None, description="Calibrated probability of every class (when logits were given).")
+    box: list[float]
+    covariance: list[list[float]] = Field(description="Calibrated `[D, D]` over `cov_dims`.")
+    ellipse: EllipseOut | None = Field(description="None when cov_dims lack x or y.")
+    distance: float = Field(description="BEV distance from the ego, m.")
+
+
+class FrameOut(BaseModel):
+    """Calibrated detections of one frame, in request order."""
+
+    frame_id: str
+    detections: list[DetectionOut]
+
+
+class CalibrateResponse(BaseModel):
+    """Calibrated detections and the profile version that produced them."""
+
+    profile: ProfileRef
+    classes: list[str]
+    cov_dims: list[str]
+    ellipse_confidence: float
+    frames: list[FrameOut]
+
+
+class DetectRequest(BaseModel):
+    """Run a bundled detector on a simulated frame (or uploaded points) and calibrate."""
+
+    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [
+        {"sensor": "lidar", "seed": 123}]})
+
+    sensor: str = Field("lidar", examples=["lidar"])
+    seed: int | None = Field(None, ge=0, description="Simulated scene seed (default 0).")
+    points: list[Row] | None = Field(
+        None, min_length=1, description="Points `[P, F]` in the sensor's feature order "
+                                        "instead of a simulated frame.")
+    profile: str | None = None
+    min_score: float = Field(0.3, ge=0.0, le=1.0, description="Keep raw scores >= this.")
+    ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
+
+    @field_validator("points")
+    @classmethod
+    def _points(cls, v: list[list[float]] | None) -> list[list[float]] | None:
+        _rectangular("points", v)
+        return v
+
+    @model_validator(mode="after")
+    def _one_source(self) -> Self:
+        if self.points is not None and self.seed is not None:
+            raise ValueError("give seed or points, not both")
+        return self
+
+
+class DetectResponse(CalibrateResponse):
+    """Calibrated detections of a bundled detector, plus the frame's ground truth if simulated."""
+
+    sensor: str
+    seed: int | None
+    ground_truth: list[dict[str, object]] | None = None

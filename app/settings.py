@@ -1,0 +1,61 @@
+"""Service configuration: the one pydantic-settings class (environment prefix `DETCAL_`)."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field, SecretStr, model_validator
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+TOKEN_FILE = "admin_token"
+
+
+class Settings(BaseSettings):
+    """Everything the service reads from its environment; `DETCAL_<FIELD>` overrides a field."""
+
+    model_config = SettingsConfigDict(env_prefix="DETCAL_", extra="ignore")
+
+    data_dir: Path = Field(Path("./data"), description="Store, uploaded dumps and token file.")
+    database_url: str | None = Field(
+        None, description="SQLAlchemy URL; default a SQLite file (WAL) in data_dir.")
+    admin_token: SecretStr | None = Field(
+        None, description="Bearer token for admin endpoints; default read from "
+                          "data_dir/admin_token if that file exists, else admin is refused.")
+    default_profile: str = Field("lidar", description="Profile name used when none is given.")
+    max_request_bytes: int = Field(8 * 2**20, gt=0, description="Body limit (413) except fits.")
+    max_upload_bytes: int = Field(512 * 2**20, gt=0, description="Body limit for POST /v1/fit.")
+    host: str = "127.0.0.1"
+    port: int = Field(8000, ge=0, le=65535)
+    workers: int = Field(1, ge=1)
+    fit_workers: int = Field(1, ge=1, description="Fit jobs run at once in one process.")
+    dashboard_sensor: str = Field("lidar", description="Sensor of the dashboard's BEV frame.")
+    dashboard_seed: int = Field(0, description="Simulated frame seed drawn on the dashboard.")
+
+    @model_validator(mode="after")
+    def _token_from_file(self) -> Settings:
+        if self.admin_token is None:
+            path = self.data_dir / TOKEN_FILE
+            if path.is_file():
+                token = path.read_text().strip()
+                if token:
+                    self.admin_token = SecretStr(token)
+        return self
+
+    @property
+    def sqlalchemy_url(self) -> str:
+        """The database URL, defaulting to `sqlite:///<data_dir>/detcal.db`."""
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'detcal.db').resolve()}"
+
+    @property
+    def dumps_dir(self) -> Path:
+        """Where uploaded dumps are kept, content-addressed by sha256."""
+        return self.data_dir / "dumps"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    """The process-wide settings read from the environment (cached)."""
+    return Settings()

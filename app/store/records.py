@@ -1,0 +1,93 @@
+"""Plain records the store hands out (detached from any database session)."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from datetime import UTC, datetime
+from typing import Any
+
+JOB_STATES = ("queued", "running", "succeeded", "failed")
+
+
+def aware(ts: datetime | None) -> datetime | None:
+    """`ts` with UTC attached when the database returned it naive (SQLite)."""
+    if ts is None or ts.tzinfo is not None:
+        return ts
+    return ts.replace(tzinfo=UTC)
+
+
+class NotFoundError(LookupError):
+    """A profile, version or job that does not exist."""
+
+
+@dataclass(frozen=True)
+class ProfileRecord:
+    """One stored profile version; `json` is the CalibrationProfile JSON text."""
+
+    id: int
+    name: str
+    version: int
+    created_at: datetime
+    sha256: str
+    dump_sha256: str | None
+    job_id: str | None
+    active: bool
+    json: str
+
+    @property
+    def ref(self) -> str:
+        """The public id of this version: `name@version`."""
+        return f"{self.name}@{self.version}"
+
+
+@dataclass(frozen=True)
+class NameSummary:
+    """A profile name with its active version and how many versions it has."""
+
+    name: str
+    active_version: int | None
+    n_versions: int
+    latest_version: int
+
+
+@dataclass(frozen=True)
+class DumpRecord:
+    """An uploaded file kept content-addressed on disk."""
+
+    sha256: str
+    kind: str
+    size: int
+    created: bool
+
+
+@dataclass(frozen=True)
+class JobRecord:
+    """A fit job and, when it succeeded, the profile version it wrote."""
+
+    id: str
+    name: str
+    state: str
+    progress: float
+    stage: str | None
+    error: str | None
+    options: dict[str, Any]
+    dump_sha256: str
+    gt_sha256: str | None
+    activate: bool
+    attempts: int
+    created_at: datetime
+    started_at: datetime | None
+    finished_at: datetime | None
+    profile_id: int | None
+    profile_version: int | None
+
+    @classmethod
+    def from_row(cls, row: Any, version: int | None) -> JobRecord:
+        return cls(id=row.id, name=row.name, state=row.state, progress=row.progress,
+                   stage=row.stage, error=row.error, options=json.loads(row.options),
+                   dump_sha256=row.dump_sha256, gt_sha256=row.gt_sha256,
+                   activate=bool(row.activate), attempts=row.attempts,
+                   created_at=aware(row.created_at), started_at=aware(row.started_at),
+                   finished_at=aware(row.finished_at), profile_id=row.profile_id,
+                   profile_version=version)
