@@ -15,6 +15,7 @@ from calibrators._checks import check_choice
 from calibrators.covariance import layer_spread
 from calibrators.dump import BOX_FIELDS, Dump
 from calibrators.matching import MatchResult, match
+from calibrators.modulation import modulate_logits
 
 COV_SOURCES = ("given", "layers", "none")
 _YAW = BOX_FIELDS.index("yaw")
@@ -89,6 +90,26 @@ def ts_labels(dump: Dump, tp: np.ndarray) -> np.ndarray:
     if dump.score_mode == "sigmoid":
         return tp.astype(np.int64)
     return np.where(tp, dump.det_labels, len(dump.classes)).astype(np.int64)
+
+
+def ts_logits(dump: Dump, modulation: bool = False) -> np.ndarray:
+    """The logits temperature scaling is fit on: the final layer's `[N, C']`.
+
+    With `modulation`, the modulated final-layer logits (`modulate_logits` over all layers).
+    Modulation may move the arg-max, so in sigmoid mode only the column of the detector's
+    label (raw arg-max, the class that was matched) is returned, `[N, 1]`: that is the logit
+    `CalibrationProfile.calibrate` will score, and the one whose TP label `ts_labels` gives.
+    Softmax labels name their target column, so all `C + 1` columns are returned.
+    """
+    if not modulation:
+        return dump.det_logits[:, -1]
+    if dump.n_layers < 2:
+        raise ValueError(f"modulation needs at least 2 decoder layers, the dump has "
+                         f"{dump.n_layers}")
+    z = modulate_logits(dump.det_logits)
+    if dump.score_mode == "sigmoid":
+        return z[np.arange(len(z)), dump.det_labels][:, None]
+    return z
 
 
 def tp_residuals(dump: Dump, gt_index: np.ndarray, tp: np.ndarray,

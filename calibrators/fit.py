@@ -10,6 +10,9 @@
    detections carry most of the depth signal. Filter the dump beforehand to fit on a range;
 4. temperature scaling on the final-layer logits with TP labels (`_fitdata.ts_labels`:
    sigmoid 0/1 of the predicted class; softmax target column = matched class or no-object);
+   with `modulation=True` the final-layer logits are first modulated from all decoder layers
+   (Eq. 4-1, `calibrators.modulation`) and T is fit on the modulated logits. Matching and
+   labels stay those of the raw detector (modulation re-scores, it does not relabel);
 5. residuals (matched ground truth − final box) of the TPs over `dims` (yaw wrapped) and the
    raw covariance from `cov_source` (`given` det_cov, `layers` spread across decoder layers,
    `none`), then `DepthScaler` per predicted class with BEV distance from the ego;
@@ -33,6 +36,7 @@ from calibrators._fitdata import (
     split_frames,
     tp_residuals,
     ts_labels,
+    ts_logits,
 )
 from calibrators.depth import DepthScaler
 from calibrators.dump import Dump
@@ -46,7 +50,8 @@ Progress = Callable[[str, float], None]
 def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = ("x", "y"),
                 cov_source: str = "auto", holdout: float = 0.0, min_score: float | None = None,
                 min_samples: int = 50, seed: int = 0, dump_sha256: str | None = None,
-                progress: Progress | None = None) -> CalibrationProfile:
+                progress: Progress | None = None, modulation: bool = False
+                ) -> CalibrationProfile:
     """Fit temperature and per-class depth k on `dump`; see the module docstring.
 
     threshold: matching distance in m (> 0). dims: regression box fields (`("x", "y")` or
@@ -55,6 +60,8 @@ def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = 
     [0, 1) kept for the report. min_score: drop detections with a raw score below it (None:
     all queries). min_samples: matches a class needs for its own k (else the pooled k).
     dump_sha256: the dump file's hash for provenance (None: a hash of the arrays).
+    modulation: apply logits modulation before temperature scaling (needs L >= 2 layers);
+    recorded in the profile, whose `calibrate` then needs `layer_logits`.
     progress: called as `progress(stage, fraction)` once the options are valid, with stages
     prepare, match, temperature, depth, report, holdout report (if any), done and fractions
     rising from 0 to 1.
@@ -66,6 +73,7 @@ def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = 
     holdout = _check_holdout(holdout)
     min_score = _check_min_score(min_score)
     min_samples = _check_min_samples(min_samples)
+    modulation = _check_modulation(modulation, dump)
     source = resolve_cov_source(dump, cov_source, dims)
     report_progress("prepare", 0.0)
     if dump_sha256 is None:
@@ -84,7 +92,7 @@ def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = 
 
     report_progress("temperature", 0.25)
     scaler = TemperatureScaler(mode=fit_part.score_mode)
-    scaler.fit(fit_part.det_logits[:, -1], ts_labels(fit_part, matched.tp))
+    scaler.fit(ts_logits(fit_part, modulation), ts_labels(fit_part, matched.tp))
 
     report_progress("depth", 0.4)
     depth = _fit_depth(fit_part, matched.gt_index, matched.tp, dims, source, min_samples)
@@ -92,7 +100,8 @@ def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = 
                  {str(f) for f in depth.fallback_classes_}]
     profile = CalibrationProfile(
         classes=tuple(dump.classes), score_mode=dump.score_mode,
-        temperature=float(scaler.temperature_), cov_dims=dims, cov_source=source,
+        temperature=float(scaler.temperature_), modulation=modulation, cov_dims=dims,
+        cov_source=source,
         depth_k={c: float(depth.k_.get(c, depth.pooled_k_)) for c in dump.classes},
         pooled_k=float(depth.pooled_k_), fallback_classes=tuple(fallbacks),
         matching={"rule": "center_distance", "threshold": threshold},
@@ -184,6 +193,15 @@ def _check_min_samples(min_samples: int) -> int:
     if isinstance(min_samples, bool) or int(min_samples) != min_samples or min_samples < 1:
         raise ValueError(f"min_samples must be an integer >= 1, got {min_samples}")
     return int(min_samples)
+
+
+def _check_modulation(modulation: bool, dump: Dump) -> bool:
+    if not isinstance(modulation, bool | np.bool_):
+        raise ValueError(f"modulation must be True or False, got {modulation!r}")
+    if modulation and dump.n_layers < 2:
+        raise ValueError(f"modulation=True needs the logits of at least 2 decoder layers, the "
+                         f"dump has {dump.n_layers}")
+    return bool(modulation)
 
 
 def _no_progress(stage: str, fraction: float) -> None:

@@ -1,7 +1,8 @@
 """The calibration profile: fitted parameters, fit report and provenance, as versioned JSON.
 
 A profile is what `fit_profile` produces and what the service stores and applies:
-`calibrate(...)` turns raw detections into calibrated scores `sigmoid/softmax(z / T)`,
+`calibrate(...)` turns raw detections into calibrated scores `sigmoid/softmax(z / T)` (with
+`modulation`, `z` is first modulated from the per-layer logits, `calibrators.modulation`),
 covariances `Σ + k_c · d · I` (class `c`, BEV distance `d` from the ego) and confidence
 ellipses of their `x, y` block. `to_json()` / `from_json()` round-trip exactly (floats are
 written with `repr`, which Python reads back bit for bit).
@@ -30,6 +31,7 @@ from calibrators._checks import (
 from calibrators.covariance import dim_indices, layer_spread
 from calibrators.depth import add_depth_term
 from calibrators.ellipse import Ellipse, ellipse
+from calibrators.modulation import modulate_logits
 from calibrators.scores import SCORE_MODES, class_probabilities, predict
 
 SCHEMA_VERSION = 1
@@ -43,6 +45,8 @@ class CalibrationProfile:
 
     classes : class names in logit column order.     score_mode : "sigmoid" or "softmax".
     temperature : T > 0.                              cov_dims : regression dims of Σ (D).
+    modulation : True if logits modulation (Eq. 4-1) runs before the temperature; then
+        `calibrate` needs the per-layer logits. Absent from older JSON: read as False.
     cov_source : "given" | "layers" | "none" (where Σ comes from before depth scaling).
     depth_k : class name -> k >= 0.                   pooled_k : k for classes not in depth_k.
     fallback_classes : classes whose k is pooled_k (too few matches when fit).
@@ -54,6 +58,7 @@ class CalibrationProfile:
     classes: tuple[str, ...]
     score_mode: str
     temperature: float = 1.0
+    modulation: bool = False
     cov_dims: tuple[str, ...] = ("x", "y")
     cov_source: str = "none"
     depth_k: dict[str, float] = field(default_factory=dict)
@@ -75,6 +80,9 @@ class CalibrationProfile:
             raise ValueError(f"score_mode must be one of {list(SCORE_MODES)}, "
                              f"got {self.score_mode!r}")
         self.temperature = _number("temperature", self.temperature, positive=True)
+        if not isinstance(self.modulation, bool | np.bool_):
+            raise ValueError(f"modulation must be true or false, got {self.modulation!r}")
+        self.modulation = bool(self.modulation)
         self.cov_dims = _names("cov_dims", self.cov_dims, distinct=True)
         dim_indices(self.cov_dims)
         if self.cov_source not in COV_SOURCES:
@@ -117,9 +125,11 @@ class CalibrationProfile:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> CalibrationProfile:
-        """Validate a decoded profile (every key required, no unknown keys) and build it."""
+        """Validate a decoded profile (every key required except those in `_OPTIONAL_KEYS`,
+        which older profiles lack; no unknown keys) and build it."""
         if not isinstance(data, dict):
             raise ValueError(f"profile must be a JSON object, got {type(data).__name__}")
+        data = {**_OPTIONAL_KEYS, **data}
         if "schema_version" not in data:
             raise ValueError("profile is missing key 'schema_version'")
         _check_schema_version(data["schema_version"])
@@ -131,8 +141,8 @@ class CalibrationProfile:
         if unknown:
             raise ValueError(f"profile has unknown key {unknown[0]!r}")
         for key, kinds in _JSON_TYPES.items():
-            value = data[key]
-            if isinstance(value, bool) or not isinstance(value, kinds):
+            value = data[key]   # bool is an int in Python: only bool-typed keys take bools
+            if isinstance(value, bool) != (bool in kinds) or not isinstance(value, kinds):
                 raise ValueError(f"profile key {key!r} has the wrong type "
                                  f"{type(value).__name__}")
         return cls(**data)
@@ -140,7 +150,8 @@ class CalibrationProfile:
     def summary(self) -> dict[str, Any]:
         """Small JSON-able overview (for listings): classes, T, k per class, source, created."""
         return {"classes": list(self.classes), "score_mode": self.score_mode,
-                "temperature": self.temperature, "depth_k": dict(self.depth_k),
+                "temperature": self.temperature, "modulation": self.modulation,
+                "depth_k": dict(self.depth_k),
                 "pooled_k": self.pooled_k, "fallback_classes": list(self.fallback_classes),
                 "cov_source": self.cov_source, "cov_dims": list(self.cov_dims),
                 "created_at": self.provenance.get("created_at")}
@@ -150,16 +161,22 @@ class CalibrationProfile:
                   labels: np.ndarray | None = None, boxes: np.ndarray | None = None,
                   covariances: np.ndarray | None = None,
                   layer_boxes: np.ndarray | None = None, ego_xy: np.ndarray | None = None,
-                  ellipse_confidence: float = 0.95) -> CalibratedDetections:
+                  ellipse_confidence: float = 0.95,
+                  layer_logits: np.ndarray | None = None) -> CalibratedDetections:
         """Calibrate N detections.
 
-        Class evidence: `logits [N, C']` (C' = C sigmoid, C + 1 softmax), or raw `scores [N]`
-        with `labels [N]` (calibrated as `sigmoid(logit(p) / T)`). `boxes [N, 9]` (required)
+        Class evidence: `logits [N, C']` (C' = C sigmoid, C + 1 softmax), or `layer_logits
+        [N, L, C']` from every decoder layer (the last is the final layer), or raw `scores [N]`
+        with `labels [N]` (calibrated as `sigmoid(logit(p) / T)`). A profile with
+        `modulation` needs `layer_logits` (L >= 2): the calibrated probabilities are those of
+        the modulated logits over T, while the label stays the arg-max of the raw final layer
+        (modulation re-scores a detection, it does not relabel it). `boxes [N, 9]` (required)
         give the distance from `ego_xy [N, 2]` (default origin). Σ comes from the profile's
         `cov_source`: `covariances [N, D, D]` ("given"), `layer_boxes [N, L, 9]` ("layers",
         spread across decoder layers) or zeros ("none"); `layer_boxes` are ignored otherwise.
         """
-        labels_, scores_, raw, class_scores = self._class_evidence(logits, scores, labels)
+        labels_, scores_, raw, class_scores = self._class_evidence(logits, scores, labels,
+                                                                   layer_logits)
         n = len(labels_)
         box = as_float_array("boxes", _required("boxes", boxes), ndim=2)
         if box.shape[1] != 9:
@@ -178,26 +195,41 @@ class CalibrationProfile:
                                     distances=distances)
 
     def _class_evidence(self, logits: np.ndarray | None, scores: np.ndarray | None,
-                        labels: np.ndarray | None) -> tuple[np.ndarray, ...]:
+                        labels: np.ndarray | None, layer_logits: np.ndarray | None
+                        ) -> tuple[np.ndarray, ...]:
         """Labels, calibrated scores, raw scores `[N]` and class probabilities `[N, C]|None`."""
-        if (logits is None) == (scores is None):
-            raise ValueError("pass either logits or scores (with labels), not both or neither")
+        given = [name for name, value in (("logits", logits), ("layer_logits", layer_logits),
+                                          ("scores", scores)) if value is not None]
+        if len(given) != 1:
+            raise ValueError(f"pass either logits or scores (with labels), or layer_logits in "
+                             f"place of logits; got {given or 'none'}")
+        if self.modulation and layer_logits is None:
+            raise ValueError(f"layer_logits [N, L, C'] are required: the profile applies logits "
+                             f"modulation, which needs every decoder layer's logits, not "
+                             f"{given[0]}")
         n_classes = len(self.classes)
+        want = n_classes + (1 if self.score_mode == "softmax" else 0)
+        if layer_logits is not None:
+            layers = as_float_array("layer_logits", layer_logits, ndim=3)
+            if layers.shape[2] != want:
+                raise ValueError(f"layer_logits has {layers.shape[2]} columns but the profile's "
+                                 f"{self.score_mode} mode with {n_classes} classes needs {want}")
+            logits = layers[:, -1]
         if logits is not None:
             z = as_float_array("logits", logits, ndim=2)
-            want = n_classes + (1 if self.score_mode == "softmax" else 0)
             if z.shape[1] != want:
                 raise ValueError(f"logits has {z.shape[1]} columns but the profile's "
                                  f"{self.score_mode} mode with {n_classes} classes needs {want}")
             pred, raw = predict(z, self.score_mode)
             if labels is not None:
-                given = as_int_array("labels", labels)
-                check_length("labels", given, len(pred), "logits")
-                if not np.array_equal(given, pred):
+                given_labels = as_int_array("labels", labels)
+                check_length("labels", given_labels, len(pred), "logits")
+                if not np.array_equal(given_labels, pred):
                     raise ValueError("labels differ from the arg-max of logits; pass one of them")
-            calibrated = predict(z, self.score_mode, self.temperature)[1]
-            return pred, calibrated, raw, class_probabilities(z, self.score_mode,
-                                                              self.temperature)
+            if self.modulation:
+                z = modulate_logits(layers)
+            probs = class_probabilities(z, self.score_mode, self.temperature)
+            return pred, probs[np.arange(len(pred)), pred], raw, probs
         p = as_float_array("scores", scores, ndim=1)
         check_probabilities("scores", p)
         lab = as_int_array("labels", _required("labels (with scores)", labels))
@@ -271,10 +303,14 @@ def make_provenance(**counts: Any) -> dict[str, Any]:
 # -- validation helpers -----------------------------------------------------------------------
 _JSON_TYPES: dict[str, tuple[type, ...]] = {
     "schema_version": (int,), "classes": (list,), "score_mode": (str,),
-    "temperature": (int, float), "cov_dims": (list,), "cov_source": (str,), "depth_k": (dict,),
+    "temperature": (int, float), "modulation": (bool,), "cov_dims": (list,),
+    "cov_source": (str,), "depth_k": (dict,),
     "pooled_k": (int, float), "fallback_classes": (list,), "matching": (dict,),
     "min_score": (int, float, type(None)), "report": (dict,), "provenance": (dict,),
 }
+
+
+_OPTIONAL_KEYS: dict[str, Any] = {"modulation": False}
 
 
 def _required(name: str, value: Any) -> Any:

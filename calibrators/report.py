@@ -2,11 +2,13 @@
 
 *Before* is the raw detector: temperature 1 and the raw covariance of the profile's source
 (`given` det_cov, `layers` spread, `none`: no covariance, so regression metrics are null).
-*After* applies a `CalibrationProfile` (fitted T and Σ' = Σ + k·d·I); without a profile every
-`after` is null. Labels are the nuScenes matching of the final-layer detections at `threshold`
-m (no range filter). Regression metrics use the TPs' residuals (matched GT − final box) over
-the profile's dims; a metric is null when its covariances are missing or singular (the density
-is undefined), and `regression.note_before` / `note_after` say why.
+*After* applies a `CalibrationProfile` (fitted T, optional logits modulation from the
+per-layer logits, and Σ' = Σ + k·d·I); without a profile every `after` is null. Labels
+are the nuScenes matching of the final-layer detections at `threshold` m (no range filter);
+both sides keep the raw detector's labels. Regression metrics use the TPs' residuals
+(matched GT − final box) over the profile's dims; a metric is null when its covariances are
+missing or singular (the density is undefined), and `regression.note_before` /
+`note_after` say why.
 
 Keys (stable; every float may be null):
 
@@ -49,6 +51,7 @@ from calibrators._fitdata import (
 )
 from calibrators.dump import Dump
 from calibrators.matching import MatchResult
+from calibrators.modulation import modulate_logits
 from calibrators.profile import CalibrationProfile
 
 __all__ = ["calibration_report", "expected_mahalanobis", "format_table"]
@@ -117,8 +120,8 @@ class _State:
         self.cov = cov
 
 
-def _full_probs(dump: Dump, temperature: float) -> np.ndarray:
-    z = dump.det_logits[:, -1]
+def _full_probs(dump: Dump, temperature: float, modulation: bool = False) -> np.ndarray:
+    z = modulate_logits(dump.det_logits) if modulation else dump.det_logits[:, -1]
     if dump.score_mode == "softmax":
         return np.exp(log_softmax(z / temperature, axis=1))
     return np.zeros((len(z), 0))
@@ -127,15 +130,15 @@ def _full_probs(dump: Dump, temperature: float) -> np.ndarray:
 def _calibrated(dump: Dump, profile: CalibrationProfile, cov_raw: np.ndarray | None
                 ) -> _State:
     n, dim = dump.n_detections, len(profile.cov_dims)
+    probs = _full_probs(dump, profile.temperature, profile.modulation)
     if n == 0:
-        return _State(np.zeros(0), _full_probs(dump, profile.temperature),
-                      np.zeros((0, dim, dim)))
+        return _State(np.zeros(0), probs, np.zeros((0, dim, dim)))
     out = profile.calibrate(
-        logits=dump.det_logits[:, -1], boxes=dump.final_boxes,
+        layer_logits=dump.det_logits, boxes=dump.final_boxes,
         covariances=cov_raw if profile.cov_source == "given" else None,
         layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
         ego_xy=dump.ego_xy(dump.det_frame))
-    return _State(out.scores, _full_probs(dump, profile.temperature), out.covariances)
+    return _State(out.scores, probs, out.covariances)
 
 
 def _pairs(before: dict[str, Any], after: dict[str, Any] | None) -> dict[str, dict]:
