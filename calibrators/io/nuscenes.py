@@ -10,6 +10,7 @@ docs/formats.md has the full description and the conventions.
 
 from __future__ import annotations
 
+import copy
 import json
 import os
 import tempfile
@@ -19,8 +20,13 @@ from pathlib import Path
 import numpy as np
 from scipy.special import logit
 
-from calibrators._checks import as_float_array, check_length, check_probabilities
-from calibrators.dump import Dump
+from calibrators._checks import (
+    as_float_array,
+    check_choice,
+    check_length,
+    check_probabilities,
+)
+from calibrators.dump import BOX_FIELDS, Dump
 
 NUSCENES_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
                     "motorcycle", "bicycle", "traffic_cone", "barrier")
@@ -31,24 +37,25 @@ _DEVKIT_META = {"use_camera": False, "use_lidar": False, "use_radar": False, "us
                 "use_external": False}
 
 
-def load_nuscenes(results_path: str | os.PathLike[str], gt_path: str | os.PathLike[str],
+def load_nuscenes(results_path: str | os.PathLike[str],
+                  gt_path: str | os.PathLike[str] | None = None,
                   classes: Sequence[str] | None = None) -> Dump:
-    """Read a results JSON and its ground-truth JSON into a `Dump` (L = 1 decoder layer).
+    """Read a results JSON and, optionally, its ground-truth JSON into a `Dump` (L = 1 layer).
 
     `classes` defaults to meta["classes"] of the results file, else the 10 nuScenes classes.
     Ground-truth boxes with `num_pts == 0` are dropped (the devkit never evaluates them).
+    Without `gt_path` the dump has no ground truth (G = 0) and its frames are the results
+    file's sample tokens: enough to calibrate detections, not to fit or evaluate.
     """
     results, meta = _read(results_path, "results")
-    gt, _ = _read(gt_path, "ground truth")
     classes = tuple(str(c) for c in (classes if classes is not None
                                      else meta.get("classes", NUSCENES_CLASSES)))
     tokens = list(results)
-    for a, b, name_a, name_b in ((gt, results, "ground truth", "results"),
-                                 (results, gt, "results", "ground truth")):
-        extra = [t for t in a if t not in b]
-        if extra:
-            raise ValueError(f"{name_a} has {len(extra)} sample token(s) that {name_b} lacks, "
-                             f"e.g. {extra[0]!r}; both files must cover the same samples")
+    if gt_path is None:
+        gt: dict = {token: [] for token in tokens}
+    else:
+        gt = _read(gt_path, "ground truth")[0]
+        _check_same_tokens(results, gt)
     det = _parse(results, tokens, classes, "results", prediction=True)
     ref = _parse(gt, tokens, classes, "ground truth", prediction=False)
     keep = ref["num_pts"] != 0
@@ -64,31 +71,34 @@ def load_nuscenes(results_path: str | os.PathLike[str], gt_path: str | os.PathLi
 
 
 def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
-                  gt_path: str | os.PathLike[str], scores: np.ndarray | None = None,
-                  covariances: np.ndarray | None = None) -> None:
-    """Write `dump` (final layer) as a results JSON and a ground-truth JSON.
+                  gt_path: str | os.PathLike[str] | None = None,
+                  scores: np.ndarray | None = None, covariances: np.ndarray | None = None,
+                  cov_dims: Sequence[str] | None = None) -> None:
+    """Write `dump` (final layer) as a results JSON and, if `gt_path` is given, a GT JSON.
 
     `scores` [N] replace detection_score (the raw one goes to detection_score_raw);
-    `covariances` [N, D, D] over dump.cov_dims replace dump.det_cov.
+    `covariances` [N, D, D] replace dump.det_cov. They are over `cov_dims` when given (e.g. a
+    profile's dims), else over dump.cov_dims; `cov_dims` without `covariances` is refused.
+    A dump does not hold num_pts or attribute_name: they are written as -1 and "". To
+    calibrate an existing results document and keep all its fields, use
+    `calibrate_results_document`.
     """
     if not isinstance(dump, Dump):
         raise ValueError(f"dump must be a calibrators.Dump, got {type(dump).__name__}")
     raw = dump.det_scores
     if scores is not None:
-        scores = as_float_array("scores", scores, ndim=1)
-        check_length("scores", scores, dump.n_detections, "det_logits")
-        check_probabilities("scores", scores)
+        scores = _check_scores(scores, dump.n_detections, "det_logits")
+    if cov_dims is not None and covariances is None:
+        raise ValueError("cov_dims is given without covariances; it names the dims of "
+                         "`covariances` (dump.det_cov is always over dump.cov_dims)")
+    dims = dump.cov_dims if cov_dims is None else _check_cov_dims(cov_dims)
     if covariances is not None:
-        covariances = as_float_array("covariances", covariances, ndim=3)
-        d = len(dump.cov_dims)
-        if covariances.shape != (dump.n_detections, d, d):
-            raise ValueError(f"covariances must have shape [{dump.n_detections}, {d}, {d}], "
-                             f"got {covariances.shape}")
+        covariances = _check_cov_array(covariances, dump.n_detections, len(dims))
     cov = covariances if covariances is not None else dump.det_cov
     ego = (np.zeros((dump.n_frames, 3)) if dump.ego_translation is None
            else dump.ego_translation)
     meta = {**_DEVKIT_META, "classes": list(dump.classes), "score_mode": dump.score_mode,
-            "cov_dims": list(dump.cov_dims)}
+            "cov_dims": list(dims)}
 
     det_out: dict[str, list] = {str(t): [] for t in dump.frame_ids}
     for i in range(dump.n_detections):
@@ -102,14 +112,54 @@ def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
         if cov is not None:
             box["covariance"] = cov[i].tolist()
         det_out[str(dump.frame_ids[f])].append(box)
+    _write_json(results_path, {"meta": meta, "results": det_out})
+    if gt_path is None:
+        return
     gt_out: dict[str, list] = {str(t): [] for t in dump.frame_ids}
     for j in range(len(dump.gt_boxes)):
         f = int(dump.gt_frame[j])
         gt_out[str(dump.frame_ids[f])].append(
             _box(dump.gt_boxes[j], dump.frame_ids[f], ego[f], dump.classes[dump.gt_labels[j]],
                  -1.0))
-    _write_json(results_path, {"meta": meta, "results": det_out})
     _write_json(gt_path, {"meta": meta, "results": gt_out})
+
+
+def calibrate_results_document(document: dict, scores: np.ndarray,
+                               covariances: np.ndarray | None = None,
+                               cov_dims: Sequence[str] = ("x", "y")) -> dict:
+    """A copy of a results `document` with calibrated scores (and covariances) written in.
+
+    Boxes are taken in the order `load_nuscenes` reads them (sample tokens in file order, boxes
+    in list order), so `scores [N]` and `covariances [N, D, D]` computed on the loaded dump
+    line up. Each box gets `detection_score = scores[i]` and keeps its raw score in
+    `detection_score_raw` (an existing `detection_score_raw` is kept: it is the detector's);
+    with `covariances` it gets `covariance` over `cov_dims`, recorded in `meta.cov_dims`.
+    Every other key of the document, its meta and its boxes (attribute_name, num_pts,
+    detection_logits, unknown extensions) is kept as it is. `document` is not modified.
+    """
+    if not isinstance(document, dict) or not isinstance(document.get("results"), dict):
+        raise ValueError("document must be a results document: an object with a 'results' "
+                         "object mapping sample tokens to lists of boxes")
+    out = copy.deepcopy(document)
+    boxes = []
+    for token, items in out["results"].items():
+        if not isinstance(items, list) or not all(isinstance(b, dict) for b in items):
+            raise ValueError(f"document results[{token!r}] must be a list of box objects")
+        boxes.extend(items)
+    scores = _check_scores(scores, len(boxes), "document (boxes)")
+    cov = None
+    if covariances is not None:
+        dims = _check_cov_dims(cov_dims)
+        cov = _check_cov_array(covariances, len(boxes), len(dims))
+        meta = out.get("meta") if isinstance(out.get("meta"), dict) else {}
+        out["meta"] = {**meta, "cov_dims": list(dims)}
+    for i, box in enumerate(boxes):
+        if "detection_score_raw" not in box and "detection_score" in box:
+            box["detection_score_raw"] = box["detection_score"]
+        box["detection_score"] = float(scores[i])
+        if cov is not None:
+            box["covariance"] = cov[i].tolist()
+    return out
 
 
 # -- reading ----------------------------------------------------------------------------------
@@ -126,6 +176,15 @@ def _read(path: str | os.PathLike[str], what: str) -> tuple[dict, dict]:
     if not isinstance(meta, dict):
         raise ValueError(f"{what} 'meta' must be an object")
     return content["results"], meta
+
+
+def _check_same_tokens(results: dict, gt: dict) -> None:
+    for a, b, name_a, name_b in ((gt, results, "ground truth", "results"),
+                                 (results, gt, "results", "ground truth")):
+        extra = [t for t in a if t not in b]
+        if extra:
+            raise ValueError(f"{name_a} has {len(extra)} sample token(s) that {name_b} lacks, "
+                             f"e.g. {extra[0]!r}; both files must cover the same samples")
 
 
 def _parse(boxes: dict, tokens: list[str], classes: tuple[str, ...], what: str,
@@ -267,6 +326,32 @@ def _covariances(det: dict, d: int) -> np.ndarray | None:
 
 
 # -- writing ----------------------------------------------------------------------------------
+def _check_scores(scores: np.ndarray, n: int, other: str) -> np.ndarray:
+    """Float64 probabilities `[n]`."""
+    out = as_float_array("scores", scores, ndim=1)
+    check_length("scores", out, n, other)
+    check_probabilities("scores", out)
+    return out
+
+
+def _check_cov_dims(cov_dims: Sequence[str]) -> tuple[str, ...]:
+    dims = (cov_dims,) if isinstance(cov_dims, str) else tuple(str(d) for d in cov_dims)
+    for d in dims:
+        check_choice("cov_dims", d, BOX_FIELDS)
+    if not dims or len(set(dims)) != len(dims):
+        raise ValueError(f"cov_dims must name distinct box fields, got {list(dims)}")
+    return dims
+
+
+def _check_cov_array(covariances: np.ndarray, n: int, d: int) -> np.ndarray:
+    """Float64 `[n, d, d]` covariances (finite; shape named in the message)."""
+    cov = as_float_array("covariances", covariances, ndim=3)
+    if cov.shape != (n, d, d):
+        raise ValueError(f"covariances must have shape [{n}, {d}, {d}] (cov_dims has {d} "
+                         f"entries), got {cov.shape}")
+    return cov
+
+
 def _box(row: np.ndarray, token: str, ego: np.ndarray, name: str, score: float) -> dict:
     yaw = float(row[6])
     return {

@@ -5,7 +5,19 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrators.depth import DepthScaler, _spectral, _spectral_2x2, _Terms, add_depth_term
+from calibrators.depth import (
+    _MANTISSA_BITS,
+    _OCTAVES,
+    DepthScaler,
+    _binned,
+    _brent,
+    _class_codes,
+    _log_bin,
+    _spectral,
+    _spectral_2x2,
+    _Terms,
+    add_depth_term,
+)
 from calibrators.exceptions import NotFittedError
 
 K_TRUE = {"car": 0.02, "pedestrian": 0.08, "barrier": 0.3}
@@ -208,3 +220,95 @@ def test_zero_distance_with_singular_covariance_is_refused():
 def test_bad_hyper_parameters(kwargs, match):
     with pytest.raises(ValueError, match=match):
         DepthScaler(**kwargs).fit(*_good())
+
+
+# -- the binned Brent search equals the exact minimiser -----------------------------------------
+def exact_k(terms: _Terms, members: np.ndarray, bounds=(0.0, 25.0)) -> float:
+    """k minimising the exact `_Terms.nll` of `members` (Brent to 1e-11 on log k, then k = 0)."""
+    sub = _Terms(terms.eig[:, members], terms.sq[:, members], terms.dist[members])
+    k, nll = _brent(sub, bounds[0], bounds[1], 1e-11)
+    return bounds[0] if sub.nll(bounds[0]) <= nll else k
+
+
+def wide_draw(dim: int, seed: int):
+    """Residuals of 3 classes whose Σ span 8 decades, with singular Σ and d = 0 rows mixed in."""
+    rng = np.random.default_rng(seed)
+    k_true = {"car": 0.02, "pedestrian": 0.15, "barrier": 1.0}
+    classes = np.repeat(np.array(list(k_true)), 4000)
+    n = len(classes)
+    cov = random_psd(rng, n, dim) * 10.0 ** rng.uniform(-6, 2, n)[:, None, None]
+    d = rng.uniform(0.5, 80.0, n)
+    d[::97] = 0.0
+    cov[::97] += np.eye(dim)  # regular where d = 0
+    full = add_depth_term(cov, d, np.array([k_true[c] for c in classes]))
+    r = np.einsum("nij,nj->ni", np.linalg.cholesky(full + 1e-12 * np.eye(dim)),
+                  rng.normal(size=(n, dim)))
+    return r, cov, d, classes
+
+
+@pytest.mark.parametrize("dim, seed", [(2, 0), (2, 1), (3, 2)])
+def test_binned_fit_equals_the_exact_minimiser(dim, seed):
+    r, cov, d, classes = wide_draw(dim, seed)
+    scaler = DepthScaler().fit(r, cov, d, classes)
+    terms = _Terms.build(r, cov, d)
+    for name in scaler.k_:
+        members = np.flatnonzero(classes == name)
+        assert scaler.k_[name] == pytest.approx(exact_k(terms, members), rel=1e-6), name
+        sub = _Terms(terms.eig[:, members], terms.sq[:, members], terms.dist[members])
+        assert scaler.nll_[name] == pytest.approx(sub.nll(scaler.k_[name]), rel=1e-12)
+    assert scaler.pooled_k_ == pytest.approx(exact_k(terms, np.arange(len(r))), rel=1e-6)
+    assert scaler.pooled_nll_ == pytest.approx(terms.nll(scaler.pooled_k_), rel=1e-12)
+
+
+def test_binned_nll_is_close_to_the_exact_nll():
+    r, cov, d, classes = wide_draw(2, 3)
+    cov[(np.arange(len(r)) % 5 == 1) & (d > 0)] = 0.0  # a = 0 pairs are summed exactly
+    terms = _Terms.build(r, cov, d)
+    keys, codes = _class_codes(classes, len(classes))
+    groups, pooled = _binned(terms, codes, len(keys))
+    assert sum(g.n for g in groups) == pooled.n == len(r)
+    for k in (1e-4, 0.03, 0.5, 7.0):
+        assert pooled.nll(k) == pytest.approx(terms.nll(k), rel=1e-7)
+        exact = terms.group_nll(np.full(len(keys), k), codes)
+        for g, stats in enumerate(groups):
+            assert stats.nll(k) == pytest.approx(exact[g], rel=1e-7)
+    assert pooled.nll(0.0) == np.inf == terms.nll(0.0)  # Σ = 0 rows: singular at k = 0
+
+
+def test_without_covariance_the_binned_search_is_exact():
+    rng = np.random.default_rng(9)
+    d = rng.uniform(0.0, 60.0, 3000)
+    d[0] = 1.0
+    r = rng.normal(size=(3000, 3)) * np.sqrt(0.2 * d)[:, None]
+    scaler = DepthScaler().fit(r, None, d, np.zeros(3000, dtype=int))
+    closed = float(np.sum(r**2 / d[:, None]) / r.size)
+    assert scaler.k_[0] == pytest.approx(closed, rel=1e-7)
+
+
+def test_log_bins_are_monotone_and_fine():
+    a = np.sort(np.random.default_rng(1).uniform(0.0, 1.0, 5000) ** 8)
+    a[:3] = 0.0
+    key, n_bins = _log_bin(a)
+    assert (key[:3] == 0).all() and (key[3:] >= 1).all() and (np.diff(key) >= 0).all()
+    assert key.max() == n_bins == _OCTAVES << _MANTISSA_BITS  # a spans more than 64 octaves
+    for b in np.unique(key[key > 1]):
+        inside = a[key == b]
+        assert inside.max() / inside.min() - 1 <= 2.0**-_MANTISSA_BITS
+    assert a[key == 1].max() <= a.max() * 2.0**-(_OCTAVES - 1)  # the floor bin: negligible a
+    narrow, n_bins = _log_bin(np.array([[1.0, 1.5], [0.0, 1.999]]))
+    per_octave = 1 << _MANTISSA_BITS  # 1.0 is the lowest bin; 1.5 and 1.999 the same octave
+    top = int(0.999 * per_octave) + 1
+    assert n_bins == top and narrow.tolist() == [[1, per_octave // 2 + 1], [0, top]]
+    assert _log_bin(np.zeros((2, 0)))[0].shape == (2, 0)
+    assert _log_bin(np.zeros(3))[0].tolist() == [0, 0, 0]
+
+
+@pytest.mark.parametrize("classes", [
+    np.array([3, -2, 3, 7, -2]), np.array([5, 10**12, 5]), np.array(["b", "a", "b"]),
+    np.array([2, 2, 2], dtype=np.uint8)])
+def test_class_codes_match_unique(classes):
+    keys, codes = _class_codes(classes, len(classes))
+    want_keys, want_codes = np.unique(classes, return_inverse=True)
+    assert keys == want_keys.tolist()
+    np.testing.assert_array_equal(codes, want_codes)
+    assert all(type(k) in (int, str) for k in keys)

@@ -4,11 +4,21 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from scipy.optimize import minimize_scalar
 from scipy.special import expit, log_expit, logsumexp, softmax
 
+from calibrators import temperature
 from calibrators.exceptions import NotFittedError
 from calibrators.scores import class_probabilities
-from calibrators.temperature import TemperatureScaler, _sigmoid_nll, _softmax_nll
+from calibrators.temperature import (
+    _SIGMOID_BINS,
+    _SUBSAMPLE_MIN,
+    TemperatureScaler,
+    _binned_sigmoid_nll,
+    _sigmoid_nll,
+    _sigmoid_nll_1d,
+    _softmax_nll,
+)
 
 N = 100_000
 
@@ -150,3 +160,59 @@ def test_optimum_at_the_bound_warns():
     with pytest.warns(RuntimeWarning, match="edge of bounds"):
         scaler = TemperatureScaler(bounds=(0.1, 10.0)).fit(z, y)
     assert scaler.temperature_ == pytest.approx(0.1, rel=1e-5)
+
+
+# -- the fast searches equal the exact minimiser -------------------------------------------------
+def exact_temperature(objective, bounds=(0.01, 100.0)) -> float:
+    """T minimising an exact NLL of log T, by bounded Brent to 1e-11."""
+    result = minimize_scalar(objective, bounds=np.log(bounds), method="bounded",
+                             options={"xatol": 1e-11})
+    return float(np.exp(result.x))
+
+
+@pytest.mark.parametrize("seed, scale, shift", [(0, 3.0, -2.0), (1, 0.3, 0.0), (2, 12.0, 4.0)])
+def test_binned_sigmoid_fit_equals_the_exact_minimiser(seed, scale, shift):
+    n = 3 * _SIGMOID_BINS  # above the threshold: the binned search is used
+    rng = np.random.default_rng(seed)
+    z = rng.standard_t(3, size=(n, 4)) * scale + shift  # heavy tails stretch the bins
+    y = (rng.random(n) < expit(z.max(axis=1) / 1.3)).astype(np.int64)
+    scaler = TemperatureScaler().fit(z, y)
+    exact = _sigmoid_nll(z, y)
+    assert scaler.temperature_ == pytest.approx(exact_temperature(exact), rel=1e-6)
+    assert scaler.nll_ == pytest.approx(exact(np.log(scaler.temperature_)), rel=1e-12)
+
+
+def test_binned_sigmoid_nll_error_is_within_its_bound():
+    rng = np.random.default_rng(4)
+    s = rng.normal(0.0, 4.0, 50_000)
+    y = rng.integers(0, 2, 50_000)
+    n_bins = 1024  # coarse, so the error is measurable
+    binned, exact = _binned_sigmoid_nll(s, y, n_bins), _sigmoid_nll_1d(s, y)
+    h = np.ptp(s) / n_bins
+    for t in (0.3, 1.0, 4.0):
+        error = abs(binned(np.log(t)) - exact(np.log(t)))
+        assert 0 < error <= (h / t) ** 3 / 48
+    same = np.full(10, 2.5)  # zero span: one bin, exact
+    assert _binned_sigmoid_nll(same, y[:10])(0.3) == pytest.approx(
+        _sigmoid_nll_1d(same, y[:10])(0.3), rel=1e-14)
+
+
+@pytest.mark.parametrize("t_true", [0.4, 1.5, 6.0])
+def test_softmax_subsample_bracket_fit_equals_the_exact_minimiser(t_true):
+    z, y = softmax_sample(t_true, n=_SUBSAMPLE_MIN, n_classes=6, seed=5)
+    scaler = TemperatureScaler(mode="softmax").fit(z, y)
+    exact = exact_temperature(_softmax_nll(z, y))
+    assert scaler.temperature_ == pytest.approx(exact, rel=1e-6)
+    assert scaler.temperature_ == pytest.approx(t_true, rel=0.02)
+
+
+def test_softmax_bracket_that_misses_is_searched_again(monkeypatch):
+    z, y = softmax_sample(1.7, n=_SUBSAMPLE_MIN, n_classes=4, seed=6)
+    full = TemperatureScaler(mode="softmax").fit(z, y)
+    # a bracket far narrower than the subsample's error: the optimum lies at its edge
+    monkeypatch.setattr(temperature, "_BRACKET_WIDTH", 1e-6)
+    again = TemperatureScaler(mode="softmax").fit(z, y)
+    exact = exact_temperature(_softmax_nll(z, y))
+    assert again.temperature_ == pytest.approx(exact, rel=1e-6)
+    assert full.temperature_ == pytest.approx(exact, rel=1e-6)
+    assert again.n_evaluations_ > full.n_evaluations_
