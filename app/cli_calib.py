@@ -12,7 +12,6 @@ import json
 import os
 import sys
 import tempfile
-from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -136,12 +135,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
     dump, _ = load_input(str(path), None)
     out = _calibrated(dump, profile)
-    # Σ' is over the profile's dims, which need not be the dump's cov_dims.
-    dump = replace(dump, det_cov=None, cov_dims=tuple(profile.cov_dims))
     with tempfile.TemporaryDirectory() as tmp:
         results = Path(tmp) / "results.json"
-        save_nuscenes(dump, results, Path(tmp) / "gt.json", scores=out.scores,
-                      covariances=out.covariances)
+        # Σ' is over the profile's dims, which need not be the dump's cov_dims.
+        save_nuscenes(dump, results, scores=out.scores, covariances=out.covariances,
+                      cov_dims=tuple(profile.cov_dims))
         _write_text(args.out, results.read_text(encoding="utf-8").rstrip("\n"))
     return 0
 
@@ -155,22 +153,17 @@ def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None) -> di
     `--nuscenes-gt`, distances are measured from the boxes' `ego_translation` if they have
     one, else from the origin (ego-frame results).
     """
-    from calibrators.io import load_nuscenes
+    from calibrators.io import calibrate_results_document, load_nuscenes
 
     try:
         doc = json.loads(path.read_bytes())
         results = doc["results"]
-        tokens = list(results)
+        boxes = [box for token in results for box in results[token]]
     except (ValueError, KeyError, TypeError):
         raise CliError(f"{path} is not a nuScenes results JSON (an object with 'results')"
                        ) from None
-    with tempfile.TemporaryDirectory() as tmp:
-        gt = gt_path
-        if gt is None:   # no ground truth needed to calibrate: an empty one per sample
-            gt = str(Path(tmp) / "gt.json")
-            Path(gt).write_text(json.dumps({"results": {t: [] for t in tokens}}))
-        dump = load_nuscenes(str(path), str(_existing(gt)), classes=profile.classes)
-    boxes = [box for t in tokens for box in results[t]]
+    gt = None if gt_path is None else str(_existing(gt_path))
+    dump = load_nuscenes(str(path), gt, classes=profile.classes)
     if any("detection_logits" in box for box in boxes):
         out = _calibrated(dump, profile)
     else:
@@ -179,14 +172,8 @@ def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None) -> di
             labels=dump.det_labels, boxes=dump.final_boxes,
             covariances=dump.det_cov if profile.cov_source == "given" else None,
             ego_xy=dump.ego_xy(dump.det_frame))
-    for box, score, raw, cov in zip(boxes, out.scores, out.scores_raw, out.covariances,
-                                    strict=True):
-        box["detection_score"] = float(score)
-        box["detection_score_raw"] = float(raw)
-        box["covariance"] = cov.tolist()
-    meta = doc.get("meta") if isinstance(doc.get("meta"), dict) else {}
-    doc["meta"] = {**meta, "cov_dims": list(profile.cov_dims)}
-    return doc
+    return calibrate_results_document(doc, out.scores, out.covariances,
+                                      cov_dims=tuple(profile.cov_dims))
 
 
 # -- helpers ---------------------------------------------------------------------------------
@@ -227,6 +214,7 @@ def _calibrated(dump: Any, profile: Any) -> Any:
                        f"the dump has {dump.score_mode} classes {list(dump.classes)}")
     return profile.calibrate(
         logits=dump.det_logits[:, -1], boxes=dump.final_boxes,
+        layer_logits=dump.det_logits if profile.modulation else None,
         covariances=dump.det_cov if profile.cov_source == "given" else None,
         layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
         ego_xy=dump.ego_xy(dump.det_frame))
