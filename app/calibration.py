@@ -27,7 +27,7 @@ class _Group:
     """Arrays of detections that share one evidence/uncertainty form."""
 
     index: list[int] = field(default_factory=list)
-    evidence: list[list[float]] = field(default_factory=list)   # logits rows, or [score]
+    evidence: list = field(default_factory=list)   # logits rows, [L, C'] layer logits, or [score]
     labels: list[int] = field(default_factory=list)
     boxes: list[list[float]] = field(default_factory=list)
     covariances: list[list[list[float]]] = field(default_factory=list)
@@ -79,7 +79,7 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
     prof = loaded.profile
     classes = list(prof.classes)
     width = len(classes) + (1 if prof.score_mode == "softmax" else 0)
-    groups: dict[tuple[str, bool, int], _Group] = defaultdict(_Group)
+    groups: dict[tuple[str, bool, int, int], _Group] = defaultdict(_Group)
     flat: list[DetectionIn] = []
     frame_of: list[int] = []
     for fi, frame in enumerate(frames):
@@ -87,7 +87,8 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
         for di, det in enumerate(frame.detections):
             here = locate(fi, di)
             key, g_row = _prepare(det, here, classes, width, tuple(prof.cov_dims),
-                                  prof.cov_source, prof.score_mode, loaded.record.ref)
+                                  prof.cov_source, prof.score_mode, loaded.record.ref,
+                                  prof.modulation)
             g = groups[key]
             g.index.append(len(flat))
             g.evidence.append(g_row[0])
@@ -102,7 +103,7 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
             frame_of.append(fi)
 
     rows: list[dict[str, object] | None] = [None] * len(flat)
-    for (kind, has_cov, n_layers), g in groups.items():
+    for (kind, has_cov, n_layers, _), g in groups.items():
         _run_group(loaded, kind, has_cov, n_layers, g, confidence, flat, rows)
     out: list[list[dict[str, object]]] = [[] for _ in frames]
     for i, row in enumerate(rows):
@@ -111,11 +112,29 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
 
 
 def _prepare(det: DetectionIn, loc: list[str | int], classes: list[str], width: int,
-             cov_dims: tuple[str, ...], cov_source: str, mode: str, ref: str
-             ) -> tuple[tuple[str, bool, int], tuple[list[float], int, list[float]]]:
-    """Group key and `(evidence, label, box)` of one detection, checked against the profile."""
+             cov_dims: tuple[str, ...], cov_source: str, mode: str, ref: str,
+             modulation: bool = False,
+             ) -> tuple[tuple[str, bool, int, int], tuple[list, int, list[float]]]:
+    """Group key and `(evidence, label, box)` of one detection, checked against the profile.
+
+    A profile with logits modulation needs every decoder layer's logits: its evidence is the
+    `[L, C']` layer logits, and detections are grouped by L as well.
+    """
     n_dims = len(cov_dims)
-    if det.score is not None:
+    n_logit_layers = 0
+    if modulation:
+        layers = det.layer_logits
+        if det.score is not None or layers is None or len(layers) < 2:
+            raise _mismatch([*loc, "layer_logits"],
+                            f"profile {ref} modulates logits by their variance across decoder "
+                            "layers: give layer_logits with at least 2 layers")
+        bad = next((i for i, row in enumerate(layers) if len(row) != width), None)
+        if bad is not None:
+            raise _mismatch([*loc, "layer_logits", bad],
+                            f"layer_logits[{bad}] has {len(layers[bad])} columns but profile "
+                            f"{ref} ({mode}, {len(classes)} classes) needs {width}")
+        kind, label, evidence, n_logit_layers = "logits", -1, layers, len(layers)
+    elif det.score is not None:
         kind, evidence = "score", [det.score]
         label = _label_index(det.label, classes, [*loc, "label"])  # type: ignore[arg-type]
     else:
@@ -154,7 +173,7 @@ def _prepare(det: DetectionIn, loc: list[str | int], classes: list[str], width: 
                             "layers")
         n_layers = len(det.layer_boxes)
     box = _box9(det.box) if det.box is not None else det.layer_boxes[-1]  # type: ignore[index]
-    return (kind, det.covariance is not None, n_layers), (evidence, label, box)
+    return (kind, det.covariance is not None, n_layers, n_logit_layers), (evidence, label, box)
 
 
 def _run_group(loaded: LoadedProfile, kind: str, has_cov: bool, n_layers: int, g: _Group,
@@ -170,7 +189,9 @@ def _run_group(loaded: LoadedProfile, kind: str, has_cov: bool, n_layers: int, g
         kwargs["scores"] = np.asarray(g.evidence, dtype=np.float64)[:, 0]
         kwargs["labels"] = np.asarray(g.labels, dtype=np.int64)
     else:
-        kwargs["logits"] = np.asarray(g.evidence, dtype=np.float64)
+        evidence = np.asarray(g.evidence, dtype=np.float64)
+        # [N, L, C'] layer logits of a modulating profile, else final-layer logits [N, C']
+        kwargs["layer_logits" if evidence.ndim == 3 else "logits"] = evidence
     if has_cov:
         kwargs["covariances"] = np.asarray(g.covariances, dtype=np.float64)
     if n_layers:
