@@ -1,8 +1,11 @@
 """The profile store: immutable profile versions, atomic activation, fit jobs, uploaded dumps.
 
-Works on SQLite (WAL, foreign keys on, busy timeout) and Postgres; the URL decides. Every
-write that must be all-or-nothing (a fit landing its version, an activation) is one
-transaction.
+Works on SQLite (WAL, foreign keys on, busy timeout) and Postgres (psycopg 3); the URL
+decides. Every write that must be all-or-nothing (a fit landing its version, an activation)
+is one transaction. Writes that pick a version number or move an active pointer serialize per
+profile name (`Store._serialize`): SQLite takes its one write lock up front, Postgres a
+transaction-scoped advisory lock on the name, so concurrent fits of one name get distinct
+versions without relying on retries.
 """
 
 from __future__ import annotations
@@ -18,7 +21,7 @@ from datetime import datetime, timedelta
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from sqlalchemy import create_engine, event, func, select, text, update
+from sqlalchemy import Connection, create_engine, event, func, select, text, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
@@ -31,6 +34,7 @@ from app.store.records import (
     ProfileRecord,
     aware,
 )
+from app.store.urls import engine_url
 
 _CHUNK = 1 << 20
 
@@ -44,23 +48,48 @@ def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
     cur.close()
 
 
+def _lock_key(scope: str, name: str) -> int:
+    """A signed 64-bit advisory-lock key for `name` within `scope` (Postgres)."""
+    digest = hashlib.sha256(f"detcal:{scope}:{name}".encode()).digest()
+    return int.from_bytes(digest[:8], "big", signed=True)
+
+
 class Store:
     """Repository over the database at `url`, with uploaded files under `dumps_dir`."""
 
     def __init__(self, url: str, dumps_dir: Path) -> None:
-        self.url = url
+        parsed = engine_url(url)
+        self.url = parsed.render_as_string(hide_password=True)
         self.dumps_dir = Path(dumps_dir)
         self.dumps_dir.mkdir(parents=True, exist_ok=True)
-        is_sqlite = url.startswith("sqlite")
-        if is_sqlite and url.startswith("sqlite:///") and ":memory:" not in url:
-            Path(url.removeprefix("sqlite:///")).parent.mkdir(parents=True, exist_ok=True)
+        self.backend = parsed.get_backend_name()
+        is_sqlite = self.backend == "sqlite"
+        if is_sqlite and parsed.database and parsed.database != ":memory:":
+            Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
         kwargs: dict[str, Any] = {"connect_args": {"check_same_thread": False}} if is_sqlite else {
             "pool_pre_ping": True}
-        self.engine = create_engine(url, **kwargs)
+        self.engine = create_engine(parsed, **kwargs)
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
-        Base.metadata.create_all(self.engine)
+        with self.engine.begin() as conn:
+            # Several server processes may start at once on one Postgres database.
+            self._serialize(conn, "schema", "create")
+            Base.metadata.create_all(conn)
         self._session = sessionmaker(self.engine, expire_on_commit=False)
+
+    def _serialize(self, conn: Connection | Session, scope: str, name: str) -> None:
+        """Hold a lock on (`scope`, `name`) until the transaction ends; call it first.
+
+        Postgres: a transaction-scoped advisory lock on the pair. SQLite (profile scope):
+        take the database's write lock before reading, so the version read next is the
+        latest one (pysqlite would otherwise read outside the transaction and leave the
+        race to the unique constraint and retries).
+        """
+        if self.backend == "postgresql":
+            conn.execute(text("SELECT pg_advisory_xact_lock(:key)"),
+                         {"key": _lock_key(scope, name)})
+        elif self.backend == "sqlite" and scope == "profile":
+            conn.execute(text("UPDATE active_profiles SET version = version WHERE 0"))
 
     def close(self) -> None:
         """Release every pooled connection."""
@@ -102,10 +131,13 @@ class Store:
             if os.path.exists(tmp):
                 os.unlink(tmp)
             raise
-        with self._tx() as s:
-            created = s.get(DumpRow, sha) is None
-            if created:
-                s.add(DumpRow(sha256=sha, kind=kind, size=size))
+        try:
+            with self._tx() as s:
+                created = s.get(DumpRow, sha) is None
+                if created:
+                    s.add(DumpRow(sha256=sha, kind=kind, size=size))
+        except IntegrityError:
+            created = False  # the same bytes were recorded concurrently
         return DumpRecord(sha256=sha, kind=kind, size=size, created=created)
 
     def dump_path(self, sha256: str) -> Path:
@@ -132,6 +164,7 @@ class Store:
     def _insert_version(self, s: Session, name: str, profile_json: str,
                         dump_sha256: str | None, job_id: str | None,
                         activate: bool) -> ProfileRecord:
+        self._serialize(s, "profile", name)
         last = s.scalar(select(func.max(ProfileRow.version)).where(ProfileRow.name == name))
         row = ProfileRow(name=name, version=(last or 0) + 1, json=profile_json,
                          sha256=hashlib.sha256(profile_json.encode()).hexdigest(),
@@ -201,6 +234,7 @@ class Store:
     def activate(self, name: str, version: int) -> ProfileRecord:
         """Make `version` the active one of `name`, atomically (rolling back = older version)."""
         with self._tx() as s:
+            self._serialize(s, "profile", name)
             row = s.scalar(select(ProfileRow).where(ProfileRow.name == name,
                                                     ProfileRow.version == version))
             if row is None:
@@ -242,8 +276,10 @@ class Store:
         """Atomically move the oldest queued job to running and return it (None if none)."""
         for _ in range(5):
             with self._tx() as s:
+                # Postgres: skip rows another worker is claiming; SQLite renders no FOR UPDATE.
                 job_id = s.scalar(select(JobRow.id).where(JobRow.state == "queued")
-                                  .order_by(JobRow.created_at).limit(1))
+                                  .order_by(JobRow.created_at).limit(1)
+                                  .with_for_update(skip_locked=True))
                 if job_id is None:
                     return None
                 now = utcnow()
@@ -259,14 +295,14 @@ class Store:
         """Record progress of a running job (also its heartbeat)."""
         with self._tx() as s:
             s.execute(update(JobRow).where(JobRow.id == job_id, JobRow.state == "running")
-                      .values(progress=max(0.0, min(1.0, progress)), stage=stage,
+                      .values(progress=max(0.0, min(1.0, progress)), stage=_text(stage, 200),
                               heartbeat_at=utcnow()))
 
     def fail_job(self, job_id: str, error: str) -> None:
         """Mark a job failed with its error message; nothing else changes."""
         with self._tx() as s:
             s.execute(update(JobRow).where(JobRow.id == job_id)
-                      .values(state="failed", error=error[:4000], finished_at=utcnow(),
+                      .values(state="failed", error=_text(error, 4000), finished_at=utcnow(),
                               stage="failed"))
 
     def complete_job(self, job_id: str, profile_json: str) -> ProfileRecord:
@@ -319,6 +355,11 @@ class Store:
             versions = dict(s.execute(select(ProfileRow.id, ProfileRow.version)
                                       .where(ProfileRow.id.in_(ids))).all()) if ids else {}
         return [JobRecord.from_row(r, versions.get(r.profile_id)) for r in rows]
+
+
+def _text(value: str | None, limit: int) -> str | None:
+    """`value` cut to `limit` characters, without NUL (Postgres text cannot hold it)."""
+    return None if value is None else value.replace("\x00", "")[:limit]
 
 
 def _profile(row: ProfileRow, active_version: int | None) -> ProfileRecord:

@@ -1,10 +1,15 @@
-"""The profile store on a real SQLite file: versions, activation, jobs, dumps, atomicity."""
+"""The store contract on both backends: versions, activation, jobs, dumps, atomicity.
+
+Every test taking `store` (or `url`) runs on a SQLite file and on a throwaway Postgres
+cluster (tests/app/pg.py; skipped locally without the server binaries, a failure under CI).
+"""
 
 from __future__ import annotations
 
 import io
 import json
 import threading
+from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 
@@ -13,19 +18,52 @@ from sqlalchemy import text
 from sqlalchemy.exc import DBAPIError
 
 from app.store import NotFoundError, Store
+from tests.app import pg
+
+
+@pytest.fixture(scope="session")
+def postgres_cluster() -> Iterator[pg.PostgresCluster]:
+    """The shared throwaway Postgres cluster (started on first use)."""
+    yield pg.acquire()
+    pg.release()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """URL of an empty database: a SQLite file, or a fresh schema on the Postgres cluster."""
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / 'detcal.db'}"
+    return request.getfixturevalue("postgres_cluster").fresh_url()
 
 
 @pytest.fixture
-def store(tmp_path: Path) -> Store:
-    s = Store(f"sqlite:///{tmp_path / 'detcal.db'}", tmp_path / "dumps")
+def store(url: str, tmp_path: Path) -> Iterator[Store]:
+    s = Store(url, tmp_path / "dumps")
     yield s
     s.close()
 
 
-def test_sqlite_runs_in_wal_mode_with_foreign_keys(store: Store) -> None:
+def refuse_updates(store: Store, table: str, when: str | None = None) -> None:
+    """Install a trigger that makes the database refuse UPDATEs of `table` (if `when`)."""
+    with store.engine.begin() as conn:
+        if store.backend == "sqlite":
+            cond = f"WHEN {when} " if when else ""
+            conn.execute(text(f"CREATE TRIGGER refuse_{table} BEFORE UPDATE ON {table} {cond}"
+                              "BEGIN SELECT RAISE(ABORT, 'refused'); END"))
+        else:
+            cond = f"WHEN ({when}) " if when else ""
+            conn.execute(text("CREATE OR REPLACE FUNCTION refuse() RETURNS trigger "
+                              "LANGUAGE plpgsql AS $$ BEGIN RAISE EXCEPTION 'refused'; END $$"))
+            conn.execute(text(f"CREATE TRIGGER refuse_{table} BEFORE UPDATE ON {table} "
+                              f"FOR EACH ROW {cond}EXECUTE FUNCTION refuse()"))
+
+
+def test_sqlite_runs_in_wal_mode_with_foreign_keys(tmp_path: Path) -> None:
+    store = Store(f"sqlite:///{tmp_path / 'detcal.db'}", tmp_path / "dumps")
     with store.engine.connect() as conn:
         assert conn.execute(text("PRAGMA journal_mode")).scalar() == "wal"
         assert conn.execute(text("PRAGMA foreign_keys")).scalar() == 1
+    store.close()
 
 
 def test_versions_count_up_and_first_becomes_active(store: Store) -> None:
@@ -57,6 +95,34 @@ def test_add_with_activate_moves_the_pointer(store: Store) -> None:
     store.add_profile("lidar", "{}")
     assert store.add_profile("lidar", "{}", activate=True).active
     assert store.active_version("lidar") == 2
+    assert [v.active for v in store.versions("lidar")] == [False, True]
+
+
+def test_versions_are_immutable(store: Store) -> None:
+    """Adding and activating other versions never changes a stored version's content."""
+    v1 = store.add_profile("lidar", '{"t": 1.5}', dump_sha256="a" * 64)
+    store.add_profile("lidar", '{"t": 2.5}', activate=True)
+    store.activate("lidar", 1)
+    again = store.get("lidar", 1)
+    assert (again.id, again.json, again.sha256, again.dump_sha256, again.created_at) == (
+        v1.id, v1.json, v1.sha256, v1.dump_sha256, v1.created_at)
+    with pytest.raises(DBAPIError):           # (name, version) is unique in the database
+        with store.engine.begin() as conn:
+            conn.execute(text("INSERT INTO profiles (name, version, created_at, json, sha256) "
+                              "VALUES ('lidar', 1, CURRENT_TIMESTAMP, '{}', 'x')"))
+    assert store.get("lidar", 1).json == '{"t": 1.5}'
+
+
+def test_failed_activation_keeps_the_pointer(store: Store) -> None:
+    """A refused pointer move lands nothing: neither the new version nor the activation."""
+    store.add_profile("lidar", "{}")
+    refuse_updates(store, "active_profiles")
+    with pytest.raises(DBAPIError):
+        store.add_profile("lidar", '{"new": 1}', activate=True)
+    with pytest.raises(DBAPIError):
+        store.activate("lidar", 1)
+    assert [v.version for v in store.versions("lidar")] == [1]
+    assert store.active("lidar").version == 1
 
 
 def test_unknown_names_are_not_found(store: Store) -> None:
@@ -109,9 +175,7 @@ def test_complete_is_one_transaction(store: Store) -> None:
     sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
     job = store.create_job("lidar", {}, sha)
     store.claim_job()
-    with store.engine.begin() as conn:
-        conn.execute(text("CREATE TRIGGER refuse BEFORE UPDATE OF state ON jobs "
-                          "WHEN NEW.state = 'succeeded' BEGIN SELECT RAISE(ABORT, 'no'); END"))
+    refuse_updates(store, "jobs", "NEW.state = 'succeeded'")
     with pytest.raises(DBAPIError):
         store.complete_job(job.id, '{"t": 1}')
     assert store.count_profiles() == 0
@@ -129,26 +193,52 @@ def test_stale_running_jobs_are_requeued_then_failed(store: Store) -> None:
     assert final.state == "failed" and "interrupted 3 times" in (final.error or "")
 
 
-def test_concurrent_fits_get_distinct_versions(store: Store) -> None:
+def run_threads(target, n: int) -> list[Exception]:
+    """Run `target(i)` for i < n in n threads at once; the exceptions they raised."""
     errors: list[Exception] = []
+    start = threading.Barrier(n)
 
-    def add(i: int) -> None:
+    def run(i: int) -> None:
+        start.wait()
         try:
-            store.add_profile("lidar", json.dumps({"i": i}))
-        except Exception as exc:  # noqa: BLE001
+            target(i)
+        except Exception as exc:  # noqa: BLE001 - reported by the test
             errors.append(exc)
 
-    threads = [threading.Thread(target=add, args=(i,)) for i in range(6)]
+    threads = [threading.Thread(target=run, args=(i,)) for i in range(n)]
     for t in threads:
         t.start()
     for t in threads:
         t.join()
+    return errors
+
+
+def test_concurrent_fits_get_distinct_versions(store: Store) -> None:
+    errors = run_threads(lambda i: store.add_profile("lidar", json.dumps({"i": i}),
+                                                     activate=i % 2 == 1), 6)
     assert not errors
-    assert [v.version for v in store.versions("lidar")] == [1, 2, 3, 4, 5, 6]
+    versions = store.versions("lidar")
+    assert [v.version for v in versions] == [1, 2, 3, 4, 5, 6]
+    assert sorted(json.loads(v.json)["i"] for v in versions) == list(range(6))
+    assert sum(v.active for v in versions) == 1                 # one active version per name
 
 
-def test_data_survives_reopening(tmp_path: Path) -> None:
-    url = f"sqlite:///{tmp_path / 'detcal.db'}"
+def test_concurrent_claims_take_each_job_once(store: Store) -> None:
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    jobs = {store.create_job("lidar", {"i": i}, sha).id for i in range(6)}
+    claimed: list[str] = []
+
+    def claim_all(_: int) -> None:
+        while (job := store.claim_job()) is not None:
+            claimed.append(job.id)
+
+    assert not run_threads(claim_all, 3)
+    claim_all(0)                                                # whatever a loser left
+    assert sorted(claimed) == sorted(jobs)                     # each exactly once
+    assert all(store.get_job(j).attempts == 1 for j in jobs)
+
+
+def test_data_survives_reopening(url: str, tmp_path: Path) -> None:
     s = Store(url, tmp_path / "dumps")
     s.add_profile("lidar", "{}")
     s.add_profile("lidar", "{}")
