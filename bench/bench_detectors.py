@@ -1,0 +1,83 @@
+"""Per-frame forward time of each bundled detector on the CPU: 2 threads, batch 1.
+
+For every sensor whose shipped weights exist, the detector runs on fixed test-split scenes
+(`detectors.sim.SPLITS["test"]`); the median over `--repeat` timed passes (after warm-up)
+is reported with the frame's number of points and queries. Reference: the thesis's 50 ms
+per frame (on a GPU), which is also issue 3's target for the lidar detector on 2 CPU cores;
+the ratio column is time / 50 ms (below 1 meets the target).
+
+Run: `.venv/bin/python -m bench.bench_detectors` (writes the "detectors" section of
+docs/benchmarks.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+
+import numpy as np
+import torch
+
+REFERENCE_MS = 50.0
+
+
+def time_forward(model: torch.nn.Module, points: torch.Tensor, repeat: int,
+                 warmup: int = 3) -> float:
+    """Median wall time in ms of `model([points])` under inference mode."""
+    with torch.inference_mode():
+        for _ in range(warmup):
+            model([points])
+        times = []
+        for _ in range(repeat):
+            t0 = time.perf_counter()
+            model([points])
+            times.append((time.perf_counter() - t0) * 1000)
+    return statistics.median(times)
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--repeat", type=int, default=20)
+    parser.add_argument("--scenes", type=int, default=3, help="test scenes per sensor")
+    parser.add_argument("--no-write", action="store_true", help="do not touch the docs")
+    args = parser.parse_args(argv)
+
+    from bench._report import write_section
+    from detectors.registry import build_detector, sensor_names, weights_path
+    from detectors.sim import SPLITS, make_frame
+
+    torch.set_num_threads(2)
+    rows, skipped = [], []
+    for sensor in sensor_names():
+        if not weights_path(sensor).exists():
+            skipped.append(sensor)
+            print(f"{sensor}: skipped (no weights at {weights_path(sensor)})")
+            continue
+        model = build_detector(sensor)
+        seeds = list(SPLITS["test"])[:args.scenes]
+        ms, n_points = [], []
+        for seed in seeds:
+            pts = np.array(make_frame(seed, sensor).sensor_frame.points, dtype=np.float32)
+            n_points.append(len(pts))
+            ms.append(time_forward(model, torch.from_numpy(pts), args.repeat))
+        t = statistics.median(ms)
+        rows.append((sensor, int(np.mean(n_points)), model.config.n_queries, t))
+        print(f"{sensor}: {t:.1f} ms/frame (median of {len(seeds)} scenes x {args.repeat}), "
+              f"{int(np.mean(n_points))} points, {model.config.n_queries} queries, "
+              f"ratio to {REFERENCE_MS:.0f} ms reference {t / REFERENCE_MS:.2f}")
+
+    lines = ["## Detectors: forward time per frame (CPU, 2 threads, batch 1)", "",
+             "Median over test-split scenes of `model([points])` under `torch.inference_mode`; "
+             f"reference: {REFERENCE_MS:.0f} ms per frame (thesis, GPU; the lidar target).", "",
+             "| sensor | points/frame | queries | ms/frame | ratio to 50 ms |",
+             "|---|---:|---:|---:|---:|"]
+    lines += [f"| {s} | {p} | {q} | {t:.1f} | {t / REFERENCE_MS:.2f} |" for s, p, q, t in rows]
+    if skipped:
+        lines += ["", f"Skipped (no shipped weights yet): {', '.join(skipped)}."]
+    if not args.no_write:
+        write_section("detectors", "\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()

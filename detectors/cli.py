@@ -1,0 +1,139 @@
+"""`detcal train | dump | show`: the detectors' subcommands (registered by app.cli).
+
+Heavy imports (torch, the simulator, matplotlib) happen inside the handlers, so listing the
+commands stays fast and works without the detectors extra installed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+SENSORS = ("lidar", "radar1", "radar5", "camera")
+SPLIT_NAMES = ("train", "val", "test")
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    """Add the `train`, `dump` and `show` subcommands."""
+    tr = subparsers.add_parser(
+        "train", help="train a bundled detector on simulated frames (CPU, resumable)",
+        description="Train SENSOR's detector from its seed; checkpoints go to runs/SENSOR/ "
+                    "and an interrupted run resumes from there; the final weights are written "
+                    "to detectors/weights/SENSOR.pt.")
+    tr.add_argument("--sensor", choices=SENSORS, required=True)
+    tr.add_argument("--steps", type=int, default=None,
+                    help="optimiser steps (default: the sensor's recipe)")
+    tr.add_argument("--batch-size", type=int, default=None, help="frames per step")
+    tr.add_argument("--seed", type=int, default=None, help="training seed (default: recipe)")
+    tr.add_argument("--run-dir", default=None, help="checkpoint/log folder "
+                    "(default: runs/SENSOR)")
+    tr.add_argument("--out", default=None, help="weights file to write "
+                    "(default: detectors/weights/SENSOR.pt)")
+    group = tr.add_mutually_exclusive_group()
+    group.add_argument("--resume", action="store_true",
+                       help="require a checkpoint to resume from (resuming is automatic)")
+    group.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
+    tr.add_argument("--workers", type=int, default=None, help="frame-generating workers")
+    tr.add_argument("--quiet", action="store_true", help="no progress bar")
+    tr.set_defaults(func=run_train)
+
+    du = subparsers.add_parser(
+        "dump", help="write a validation dump of a bundled detector",
+        description="Run SENSOR's detector over simulated scenes of a split and write "
+                    "validation dump v1 (NPZ) or a nuScenes results + ground-truth JSON pair.")
+    du.add_argument("--sensor", choices=SENSORS, required=True)
+    du.add_argument("--split", choices=SPLIT_NAMES, default="val")
+    du.add_argument("--frames", type=int, default=None, help="first N scenes of the split")
+    du.add_argument("--cov-source", choices=("layers", "attention", "none"), default="layers",
+                    help="det_cov source (default: %(default)s)")
+    du.add_argument("--format", choices=("npz", "nuscenes"), default="npz")
+    du.add_argument("--gt-filter", choices=("lidar_radar", "sensor", "none"),
+                    default="lidar_radar",
+                    help="ground truth kept: boxes with a lidar or radar point (nuScenes, "
+                         "default), with a point of this sensor, or all")
+    du.add_argument("--max-detections", type=int, default=None,
+                    help="queries kept per frame, by score (default: all queries)")
+    du.add_argument("--weights", default=None, help="weights file (default: shipped)")
+    du.add_argument("--out", required=True, help="NPZ path, or results JSON for nuscenes "
+                    "(the ground truth goes next to it as *_gt.json)")
+    du.add_argument("--quiet", action="store_true", help="no progress bar")
+    du.set_defaults(func=run_dump)
+
+    sh = subparsers.add_parser(
+        "show", help="draw a bird's-eye view of one simulated frame with detections",
+        description="Points, ground-truth boxes, detections above a score and their "
+                    "covariance ellipses, optionally after applying a calibration profile.")
+    sh.add_argument("--sensor", choices=SENSORS, required=True)
+    sh.add_argument("--seed", type=int, required=True, help="scene seed")
+    sh.add_argument("--out", required=True, help="PNG to write")
+    sh.add_argument("--profile", default=None, help="calibration profile JSON to apply")
+    sh.add_argument("--min-score", type=float, default=0.3,
+                    help="draw detections with at least this score (default: %(default)s)")
+    sh.add_argument("--cov-source", choices=("layers", "attention"), default="layers")
+    sh.add_argument("--weights", default=None, help="weights file (default: shipped)")
+    sh.set_defaults(func=run_show)
+
+
+def run_train(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from detectors.train import TrainConfig, train
+
+    cfg = TrainConfig.for_sensor(args.sensor, steps=args.steps, batch_size=args.batch_size,
+                                 seed=args.seed, workers=args.workers)
+    run = Path(args.run_dir) if args.run_dir else Path("runs") / args.sensor
+    if args.resume and not (run / "ckpt.pt").exists():
+        raise ValueError(f"--resume given but there is no checkpoint at {run / 'ckpt.pt'}")
+    result = train(cfg, run_dir=run, resume=not args.fresh, weights_out=args.out,
+                   progress=not args.quiet)
+    losses = ", ".join(f"{k} {v:.4f}" for k, v in result.final_losses.items())
+    print(f"trained {args.sensor}: {result.steps} steps in {result.wall_s / 60:.1f} min; "
+          f"final losses (mean of last 100 steps): {losses}")
+    print(f"weights: {result.weights}; log: {result.log}")
+    return 0
+
+
+def run_dump(args: argparse.Namespace) -> int:
+    from detectors.dumpwriter import build_dump, write_dump
+    from detectors.registry import build_detector
+    from detectors.sim import SPLITS
+
+    seeds = list(SPLITS[args.split])
+    if args.frames is not None:
+        if args.frames < 1:
+            raise ValueError(f"--frames must be >= 1, got {args.frames}")
+        seeds = seeds[:args.frames]
+    model = build_detector(args.sensor, weights=args.weights)
+    bar = None
+    if not args.quiet:
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(seeds), desc=f"dump {args.sensor} {args.split}", unit="frame",
+                   file=sys.stderr)
+    dump = build_dump(model, seeds, cov_source=args.cov_source,
+                      max_detections=args.max_detections, gt_filter=args.gt_filter,
+                      progress=(lambda i, n: bar.update(1)) if bar is not None else None)
+    if bar is not None:
+        bar.close()
+    paths = write_dump(dump, args.out, args.format)
+    print(f"wrote {', '.join(str(p) for p in paths)}: {dump.n_frames} frames, "
+          f"{dump.n_detections} detections, {len(dump.gt_labels)} ground-truth boxes")
+    return 0
+
+
+def run_show(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from detectors.registry import build_detector
+    from detectors.show import render_frame
+
+    profile = None
+    if args.profile:
+        from calibrators import CalibrationProfile
+
+        profile = CalibrationProfile.from_json(Path(args.profile).read_text())
+    model = build_detector(args.sensor, weights=args.weights)
+    out = render_frame(model, args.seed, args.out, min_score=args.min_score,
+                       cov_source=args.cov_source, profile=profile)
+    print(f"wrote {out}")
+    return 0

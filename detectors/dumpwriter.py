@@ -1,0 +1,138 @@
+"""Validation dumps of a detector over simulated frames (validation dump v1, docs/formats.md).
+
+`build_dump` runs a sensor's detector over scenes of a split and collects, per kept query,
+the logits and boxes of every decoder layer, an optional box covariance over (x, y), and the
+ground truth of the same frames. Covariance sources (`cov_source`):
+
+- "layers" (default): sample covariance of the query's box across decoder layers (thesis);
+- "attention": seed 000's attention covariance C_K of the final layer's top-K attention,
+  plus the variance of a uniform position within one token cell (cell^2 / 12 per axis) so
+  that a query attending to a single cell still gets a proper (positive definite) covariance;
+- "none": no det_cov (calibration then fits depth scaling from Sigma = 0).
+
+Ground truth (`gt_filter`), as nuScenes evaluation filters it:
+
+- "lidar_radar" (default): boxes with at least one lidar or radar (5-scan) point, the
+  devkit's rule (`num_lidar_pts + num_radar_pts > 0`), the same ground truth for every
+  sensor so their mAPs compare;
+- "sensor": boxes with at least one point of the dumped sensor;
+- "none": every box of the scene (a third of them have no lidar point at all).
+
+Frame ids are `seed{seed:06d}` (the same scene seen by every sensor shares its id).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from detectors.infer import detect
+from detectors.model.detector import Detector
+from detectors.uncertainty import attention_spread, layer_covariance
+
+COV_SOURCES = ("layers", "attention", "none")
+GT_FILTERS = ("lidar_radar", "sensor", "none")
+FORMATS = ("npz", "nuscenes")
+
+
+def frame_id(seed: int) -> str:
+    """The dump token of simulated scene `seed`."""
+    return f"seed{seed:06d}"
+
+
+def visible_gt(frame: object, sensor: str, gt_filter: str = "lidar_radar") -> np.ndarray:
+    """`[G]` bool: which ground-truth boxes of `frame` (seen by `sensor`) are evaluated."""
+    from detectors.sim import render
+
+    if gt_filter not in GT_FILTERS:
+        raise ValueError(f"gt_filter must be one of {list(GT_FILTERS)}, got {gt_filter!r}")
+    n_boxes = len(np.asarray(frame.scene.labels))  # type: ignore[attr-defined]
+    if gt_filter == "none":
+        return np.ones(n_boxes, dtype=bool)
+    if gt_filter == "sensor":
+        return np.asarray(frame.sensor_frame.gt_num_points) > 0  # type: ignore[attr-defined]
+    count = np.zeros(n_boxes, dtype=np.int64)
+    for other in ("lidar", "radar5"):
+        seen = frame.sensor_frame if other == sensor else \
+            render(frame.scene, other)  # type: ignore[attr-defined]
+        count += np.asarray(seen.gt_num_points, dtype=np.int64)
+    return count > 0
+
+
+def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers",
+               max_detections: int | None = None, gt_filter: str = "lidar_radar",
+               attention_top_k: int = 6,
+               progress: Callable[[int, int], None] | None = None):  # -> calibrators.Dump
+    """Run `model` over the simulated scenes `seeds` and return a `calibrators.dump.Dump`.
+
+    `max_detections` queries are kept per frame, by final-layer score (default: all of them;
+    DETR-style outputs need no NMS).
+    """
+    from calibrators.dump import Dump
+    from detectors.sim import make_frame
+
+    if gt_filter not in GT_FILTERS:
+        raise ValueError(f"gt_filter must be one of {list(GT_FILTERS)}, got {gt_filter!r}")
+    if cov_source not in COV_SOURCES:
+        raise ValueError(f"cov_source must be one of {list(COV_SOURCES)}, got {cov_source!r}")
+    sensor = model.config.sensor
+    max_detections = max_detections or model.config.n_queries
+    seeds = [int(s) for s in seeds]
+    det_frame, logits, boxes, covs = [], [], [], []
+    gt_frame, gt_labels, gt_boxes = [], [], []
+    centres = model.token_centres
+    floor = torch.eye(2) * model.token_grid.cell ** 2 / 12.0
+    for i, seed in enumerate(seeds):
+        frame = make_frame(seed, sensor)
+        points = torch.from_numpy(np.array(frame.sensor_frame.points, dtype=np.float32))
+        (det,) = list(detect(model, [points], max_detections=max_detections))
+        det_frame.append(np.full(len(det.scores), i, dtype=np.int64))
+        logits.append(det.layer_logits.numpy())
+        boxes.append(det.layer_boxes.numpy())
+        if cov_source == "layers":
+            covs.append(layer_covariance(det.layer_boxes.double()).numpy())
+        elif cov_source == "attention":
+            spread = attention_spread(det.attention.double(), centres.double(),
+                                      top_k=attention_top_k)
+            covs.append((spread.covariance + floor.double()).numpy())
+        keep = visible_gt(frame, sensor, gt_filter)
+        g_boxes = np.asarray(frame.scene.boxes, dtype=np.float64).reshape(-1, 9)[keep]
+        gt_frame.append(np.full(len(g_boxes), i, dtype=np.int64))
+        gt_labels.append(np.asarray(frame.scene.labels, dtype=np.int64).reshape(-1)[keep])
+        gt_boxes.append(g_boxes)
+        if progress is not None:
+            progress(i + 1, len(seeds))
+
+    def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: type) -> np.ndarray:
+        return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype=dtype)
+
+    n_layers, n_classes = model.config.n_layers, len(model.config.classes)
+    return Dump(
+        classes=tuple(model.config.classes), score_mode="sigmoid",
+        frame_ids=np.array([frame_id(s) for s in seeds]),
+        det_frame=cat(det_frame, (), np.int64),
+        det_logits=cat(logits, (n_layers, n_classes), np.float32),
+        det_boxes=cat(boxes, (n_layers, 9), np.float32),
+        gt_frame=cat(gt_frame, (), np.int64), gt_labels=cat(gt_labels, (), np.int64),
+        gt_boxes=cat(gt_boxes, (9,), np.float64),
+        det_cov=cat(covs, (2, 2), np.float64) if cov_source != "none" else None,
+        cov_dims=("x", "y"))
+
+
+def write_dump(dump, out: str | Path, fmt: str = "npz") -> list[Path]:
+    """Write `dump` as NPZ v1 (`out`) or as nuScenes JSON (`out` results + `*_gt.json`)."""
+    from calibrators import io
+
+    if fmt not in FORMATS:
+        raise ValueError(f"format must be one of {list(FORMATS)}, got {fmt!r}")
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    if fmt == "npz":
+        io.save_dump(out, dump)
+        return [out]
+    gt = out.with_name(out.stem + "_gt.json")
+    io.save_nuscenes(dump, out, gt)
+    return [out, gt]

@@ -1,0 +1,82 @@
+"""Inference: run a detector over point clouds and keep the per-query outputs that matter.
+
+DETR-style post-processing has no NMS: each query is one candidate; the `max_detections`
+queries with the highest final-layer score (max sigmoid over classes) are kept, with their
+outputs from every decoder layer.
+
+Per frame (K kept queries, L layers, C classes, T tokens):
+
+    FrameDetections(layer_logits [K, L, C], layer_boxes [K, L, 9], attention [K, T] (final
+                    layer), scores [K], labels [K], query_index [K])
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterable, Iterator
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor, nn
+
+from detectors.model.detector import Detector
+
+
+@dataclass(frozen=True)
+class FrameDetections:
+    """The kept queries of one frame (shapes in the module docstring), sorted by score."""
+
+    layer_logits: Tensor
+    layer_boxes: Tensor
+    attention: Tensor
+    scores: Tensor
+    labels: Tensor
+    query_index: Tensor
+
+    @property
+    def boxes(self) -> Tensor:
+        """`[K, 9]` final-layer boxes."""
+        return self.layer_boxes[:, -1]
+
+
+def enable_mc_dropout(model: nn.Module) -> nn.Module:
+    """Put only the dropout-carrying modules (Dropout, MultiheadAttention) in train mode, so
+    repeated forward passes sample MC-dropout outputs; BatchNorm stays in eval mode."""
+    model.eval()
+    for module in model.modules():
+        if isinstance(module, nn.Dropout | nn.MultiheadAttention):
+            module.train()
+    return model
+
+
+def postprocess(outputs: dict[str, Tensor], max_detections: int = 100) -> list[FrameDetections]:
+    """Split a detector output dict into per-frame detections, keeping the top queries."""
+    logits = outputs["pred_logits"]  # [L, B, Q, C]
+    boxes = outputs["pred_boxes"]  # [L, B, Q, 9]
+    attention = outputs["attention"]  # [L, B, Q, T]
+    n_layers, batch, n_queries, _ = logits.shape
+    k = min(max_detections, n_queries)
+    frames = []
+    for b in range(batch):
+        final = logits[-1, b].sigmoid()  # [Q, C]
+        best, labels = final.max(dim=1)
+        scores, order = best.topk(k)
+        frames.append(FrameDetections(
+            layer_logits=logits[:, b, order].transpose(0, 1).contiguous(),
+            layer_boxes=boxes[:, b, order].transpose(0, 1).contiguous(),
+            attention=attention[-1, b, order].contiguous(),
+            scores=scores, labels=labels[order], query_index=order))
+    return frames
+
+
+@torch.no_grad()
+def detect(model: Detector, points: Iterable[Tensor], batch_size: int = 1,
+           max_detections: int = 100) -> Iterator[FrameDetections]:
+    """Run `model` (in whatever mode it is in) over point clouds `[P, F]`, frame by frame."""
+    batch: list[Tensor] = []
+    for p in points:
+        batch.append(torch.as_tensor(p, dtype=torch.float32))
+        if len(batch) == batch_size:
+            yield from postprocess(model(batch), max_detections)
+            batch = []
+    if batch:
+        yield from postprocess(model(batch), max_detections)

@@ -1,0 +1,57 @@
+"""One transformer decoder layer: self-attention, cross-attention to BEV tokens, FFN.
+
+Post-norm as in DETR/TransFusion. Dropout sits on the self-attention weights, on both
+attention outputs (before the residual sums) and inside the FFN, so the layer supports MC
+dropout (`detectors.infer.enable_mc_dropout`). The cross-attention weights themselves are
+not dropped: over B x heads x Q x T entries that one dropout cost a fifth of a CPU training
+step, and the weights (averaged over heads) are what the attention-spread covariance
+source reads.
+
+Shapes (B frames, Q queries, T = H*W BEV tokens, D channels):
+
+    query [B, Q, D], query_pos [B, Q, D], memory [B, T, D], memory_pos [B, T, D]
+    -> DecoderOutput(query [B, Q, D], attention [B, Q, T])
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+from torch import Tensor, nn
+
+
+class DecoderOutput(NamedTuple):
+    """Updated queries `[B, Q, D]` and head-averaged cross-attention weights `[B, Q, T]`."""
+
+    query: Tensor
+    attention: Tensor
+
+
+class DecoderLayer(nn.Module):
+    """Self-attention -> cross-attention (weights returned) -> FFN, each with residual + norm."""
+
+    def __init__(self, d_model: int, n_heads: int, d_ffn: int, dropout: float) -> None:
+        super().__init__()
+        self.self_attn = nn.MultiheadAttention(d_model, n_heads, dropout=dropout,
+                                               batch_first=True)
+        self.cross_attn = nn.MultiheadAttention(d_model, n_heads, dropout=0.0,
+                                                batch_first=True)
+        self.ffn = nn.Sequential(nn.Linear(d_model, d_ffn), nn.ReLU(inplace=True),
+                                 nn.Dropout(dropout), nn.Linear(d_ffn, d_model))
+        self.norm1 = nn.LayerNorm(d_model)
+        self.norm2 = nn.LayerNorm(d_model)
+        self.norm3 = nn.LayerNorm(d_model)
+        self.drop1 = nn.Dropout(dropout)
+        self.drop2 = nn.Dropout(dropout)
+        self.drop3 = nn.Dropout(dropout)
+
+    def forward(self, query: Tensor, query_pos: Tensor, memory: Tensor,
+                memory_pos: Tensor) -> DecoderOutput:
+        q = query + query_pos
+        attended, _ = self.self_attn(q, q, query, need_weights=False)
+        query = self.norm1(query + self.drop1(attended))
+        attended, weights = self.cross_attn(query + query_pos, memory + memory_pos, memory,
+                                            need_weights=True, average_attn_weights=True)
+        query = self.norm2(query + self.drop2(attended))
+        query = self.norm3(query + self.drop3(self.ffn(query)))
+        return DecoderOutput(query=query, attention=weights)

@@ -1,0 +1,128 @@
+"""The DETR-style BEV detector (PillarFormer/TransFusion-L in miniature).
+
+points -> PillarEncoder -> BEVBackbone -> (fine map: heatmap + query init,
+coarse map + positional encoding: cross-attention tokens) -> L decoder layers, each followed
+by its class and box head; every layer's centres become the next layer's anchors.
+
+`forward(points)` takes a list of B point clouds `[P_b, F]` and returns a dict:
+
+    pred_logits   [L, B, Q, C]   raw sigmoid class logits of every decoder layer
+    pred_boxes    [L, B, Q, 9]   x y z w l h yaw vx vy, metres/radians/m/s, ego frame
+    pred_encoded  [L, B, Q, 10]  the same boxes in regression space (heads.encode_boxes)
+    attention     [L, B, Q, T]   head-averaged cross-attention weights over the T = H_t*W_t
+                                 BEV tokens (row-major, row = y), every layer
+    anchors       [L, B, Q, 2]   x y (metres) each layer's queries were anchored at;
+                                 anchors[0] is the heatmap cell centre
+    heatmap       [B, C, H, W]   class heatmap logits on the fine grid (stride 2)
+    query_labels  [B, Q]         heatmap class each query was drawn from
+    query_scores  [B, Q]         heatmap probability at each query's cell
+    token_centres [T, 2]         x y (metres) of every token cell centre (attention support)
+
+Grid metadata lives on the module: `token_grid` / `fine_grid` (BEVGrid: size, cell metres,
+origin metres).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from detectors.model.bev import BEVBackbone, BEVGrid, PillarEncoder, PositionEncoding
+from detectors.model.decoder import DecoderLayer
+from detectors.model.heads import DetectionHead
+from detectors.model.queries import HeatmapQueries
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    """Every hyper-parameter of one detector (values live in detectors.registry)."""
+
+    sensor: str
+    features: tuple[str, ...]
+    classes: tuple[str, ...]
+    grid_size: int = 128
+    grid_cell: float = 0.8
+    pillar_channels: int = 32
+    c1: int = 64
+    c2: int = 96
+    blocks: tuple[int, int] = (1, 1)
+    d_model: int = 64
+    n_heads: int = 4
+    d_ffn: int = 128
+    n_layers: int = 3
+    n_queries: int = 150
+    dropout: float = 0.1
+    keep_all_classes: tuple[str, ...] = ("pedestrian", "traffic_cone")
+    extra: dict[str, Any] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        return asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> DetectorConfig:
+        data = dict(data)
+        for key in ("features", "classes", "blocks", "keep_all_classes"):
+            if key in data:
+                data[key] = tuple(data[key])
+        return cls(**data)
+
+
+class Detector(nn.Module):
+    """BEV DETR detector; see the module docstring for the output dict."""
+
+    def __init__(self, config: DetectorConfig) -> None:
+        super().__init__()
+        self.config = config
+        cfg = config
+        grid = BEVGrid(size=cfg.grid_size, cell=cfg.grid_cell)
+        self.grid = grid
+        self.fine_grid = grid.strided(2)
+        self.token_grid = grid.strided(4)
+        n_classes = len(cfg.classes)
+        self.pillars = PillarEncoder(len(cfg.features), cfg.pillar_channels, grid)
+        self.backbone = BEVBackbone(self.pillars.out_channels, cfg.c1, cfg.c2, cfg.d_model,
+                                    cfg.blocks)
+        keep = tuple(cfg.classes.index(c) for c in cfg.keep_all_classes if c in cfg.classes)
+        self.queries = HeatmapQueries(cfg.d_model, n_classes, cfg.n_queries, self.fine_grid,
+                                      keep)
+        self.position = PositionEncoding(cfg.d_model, grid.half_extent)
+        self.layers = nn.ModuleList(DecoderLayer(cfg.d_model, cfg.n_heads, cfg.d_ffn,
+                                                 cfg.dropout) for _ in range(cfg.n_layers))
+        self.heads = nn.ModuleList(DetectionHead(cfg.d_model, n_classes, self.fine_grid.cell)
+                                   for _ in range(cfg.n_layers))
+        self.register_buffer("token_centres", self.token_grid.centres(), persistent=False)
+
+    def forward(self, points: list[Tensor]) -> dict[str, Tensor]:
+        pillars = self.pillars(points)
+        bev = self.backbone(pillars)
+        init = self.queries(bev.fine)
+        memory = bev.coarse.flatten(2).transpose(1, 2)  # [B, T, D]
+        memory_pos = self.position(self.token_centres)[None]  # [1, T, D]
+        query = init.content
+        anchors = init.anchors
+        logits, encoded, boxes, attention, anchor_list = [], [], [], [], []
+        for layer, head in zip(self.layers, self.heads, strict=True):
+            query_pos = self.position(anchors)
+            out = layer(query, query_pos, memory, memory_pos)
+            query = out.query
+            pred = head(query, anchors)
+            logits.append(pred.logits)
+            encoded.append(pred.encoded)
+            boxes.append(pred.boxes)
+            attention.append(out.attention)
+            anchor_list.append(anchors)
+            anchors = pred.encoded[..., 0:2].detach()
+        return {
+            "pred_logits": torch.stack(logits),
+            "pred_boxes": torch.stack(boxes),
+            "pred_encoded": torch.stack(encoded),
+            "attention": torch.stack(attention),
+            "anchors": torch.stack(anchor_list),
+            "heatmap": init.heatmap,
+            "query_labels": init.labels,
+            "query_scores": init.scores,
+            "token_centres": self.token_centres,
+        }

@@ -1,0 +1,223 @@
+"""Resumable, deterministic CPU training of one sensor's detector.
+
+`train(sensor)` streams augmented frames of `detectors.sim.SPLITS["train"]` (generated on the
+fly by a loader worker), optimises `detectors.losses.SetCriterion` with AdamW under a linear
+warm-up + cosine schedule, and
+
+- checkpoints every `ckpt_every` steps to `runs/{sensor}/ckpt.pt` (model, optimiser, RNG,
+  step) and resumes from it automatically: the data of step k depends only on (seed, k), so
+  an interrupted run continues exactly where it stopped;
+- appends one row per step to `runs/{sensor}/log.csv`;
+- at the end writes the shipped weights `detectors/weights/{sensor}.pt` (float32 state
+  dict + config + training metadata).
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import time
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from detectors.data import TrainSamples, collate
+from detectors.losses import SetCriterion
+from detectors.model.detector import Detector, DetectorConfig
+from detectors.registry import TRAIN_RECIPES, build_detector, save_weights, weights_path
+
+LOG_FIELDS = ("step", "lr", "loss", "heatmap", "cls", "box", "cls_last", "box_last",
+              "sec_per_step", "elapsed_s")
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """Hyper-parameters of one training run (defaults: detectors.registry.TRAIN_RECIPES)."""
+
+    sensor: str
+    steps: int
+    batch_size: int = 4
+    lr: float = 2e-3
+    weight_decay: float = 1e-2
+    warmup: int = 200
+    min_lr_ratio: float = 0.02
+    grad_clip: float = 10.0
+    seed: int = 0
+    ckpt_every: int = 200
+    threads: int = 2
+    workers: int = 1
+
+    @classmethod
+    def for_sensor(cls, sensor: str, **overrides: Any) -> TrainConfig:
+        if sensor not in TRAIN_RECIPES:
+            raise ValueError(f"sensor must be one of {list(TRAIN_RECIPES)}, got {sensor!r}")
+        base = cls(sensor=sensor, **TRAIN_RECIPES[sensor])
+        return replace(base, **{k: v for k, v in overrides.items() if v is not None})
+
+
+@dataclass(frozen=True)
+class TrainResult:
+    """Where the run left its files, and how it went."""
+
+    weights: Path | None
+    checkpoint: Path
+    log: Path
+    steps: int
+    wall_s: float
+    final_losses: dict[str, float]
+
+
+def learning_rate(cfg: TrainConfig, step: int) -> float:
+    """Linear warm-up over `warmup` steps, then cosine decay to `min_lr_ratio * lr`."""
+    if step < cfg.warmup:
+        return cfg.lr * (step + 1) / cfg.warmup
+    t = (step - cfg.warmup) / max(1, cfg.steps - cfg.warmup)
+    return cfg.lr * (cfg.min_lr_ratio + (1 - cfg.min_lr_ratio) * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+def _save_checkpoint(path: Path, model: Detector, opt: torch.optim.Optimizer, step: int,
+                     cfg: TrainConfig, elapsed: float) -> None:
+    tmp = path.with_suffix(".tmp")
+    torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
+                "train_config": asdict(cfg), "elapsed_s": elapsed,
+                "torch_rng": torch.get_rng_state(),
+                "numpy_rng": np.random.get_state()}, tmp)
+    tmp.replace(path)
+
+
+def _truncate_log(log: Path, step: int) -> None:
+    """Drop log rows after `step` (written after the checkpoint a resumed run restarts from)."""
+    if not log.exists():
+        return
+    with log.open() as f:
+        rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
+    with log.open("w", newline="") as f:
+        writer = csv.DictWriter(f, fieldnames=LOG_FIELDS)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def _recent_losses(log: Path, n: int = 100) -> dict[str, float]:
+    if not log.exists():
+        return {}
+    with log.open() as f:
+        rows = list(csv.DictReader(f))[-n:]
+    if not rows:
+        return {}
+    keys = ("loss", "heatmap", "cls", "box", "cls_last", "box_last")
+    return {k: float(np.mean([float(r[k]) for r in rows])) for k in keys}
+
+
+def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = True,
+          weights_out: str | Path | None = None, progress: bool = True,
+          on_step: Callable[[int, dict[str, float]], None] | None = None,
+          model_config: DetectorConfig | None = None) -> TrainResult:
+    """Train (or resume training) `cfg.sensor`'s detector; see the module docstring.
+
+    `model_config` replaces the registry's architecture (tests train tiny models with it).
+    """
+    from detectors.sim import SPLITS
+
+    torch.set_num_threads(cfg.threads)
+    run = Path(run_dir) if run_dir is not None else Path("runs") / cfg.sensor
+    run.mkdir(parents=True, exist_ok=True)
+    ckpt_path, log_path = run / "ckpt.pt", run / "log.csv"
+
+    torch.manual_seed(cfg.seed)
+    np.random.seed(cfg.seed)
+    model = Detector(model_config) if model_config is not None else \
+        build_detector(cfg.sensor, pretrained=False)
+    model.train()
+    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    start, elapsed = 0, 0.0
+    if resume and ckpt_path.exists():
+        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+        if ckpt["train_config"]["seed"] != cfg.seed or \
+                ckpt["train_config"]["batch_size"] != cfg.batch_size:
+            raise ValueError(f"{ckpt_path} was trained with another seed or batch size; "
+                             "start fresh (--fresh) or use another run directory")
+        model.load_state_dict(ckpt["model"])
+        opt.load_state_dict(ckpt["optimizer"])
+        torch.set_rng_state(ckpt["torch_rng"])
+        np.random.set_state(ckpt["numpy_rng"])
+        start, elapsed = int(ckpt["step"]), float(ckpt["elapsed_s"])
+        _truncate_log(log_path, start)
+    elif log_path.exists():
+        log_path.unlink()
+
+    criterion = SetCriterion(model.fine_grid, len(model.config.classes))
+    data = TrainSamples(cfg.sensor, SPLITS["train"], model.config.features,
+                        model.grid.half_extent, seed=cfg.seed,
+                        n_samples=cfg.steps * cfg.batch_size)
+    sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
+    loader = torch.utils.data.DataLoader(
+        data, batch_size=cfg.batch_size, sampler=sampler, collate_fn=collate,
+        num_workers=cfg.workers, worker_init_fn=_worker_init,
+        persistent_workers=False, prefetch_factor=2 if cfg.workers else None)
+
+    bar = None
+    if progress:
+        import sys
+
+        from tqdm import tqdm
+
+        bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.sensor}", unit="step",
+                   mininterval=0.5 if sys.stderr.isatty() else 30.0)
+    new_log = not log_path.exists()
+    log_file = log_path.open("a", newline="")
+    writer = csv.DictWriter(log_file, fieldnames=LOG_FIELDS)
+    if new_log:
+        writer.writeheader()
+    step = start
+    t_last = time.perf_counter()
+    try:
+        for batch in loader:
+            lr = learning_rate(cfg, step)
+            for group in opt.param_groups:
+                group["lr"] = lr
+            outputs = model([s.points for s in batch])
+            losses = criterion(outputs, [s.target for s in batch])
+            opt.zero_grad(set_to_none=True)
+            losses["loss"].backward()
+            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
+            opt.step()
+            step += 1
+            now = time.perf_counter()
+            dt, t_last = now - t_last, now
+            elapsed += dt
+            row = {k: float(v.detach()) for k, v in losses.items()}
+            writer.writerow({"step": step, "lr": f"{lr:.6g}", "sec_per_step": f"{dt:.3f}",
+                             "elapsed_s": f"{elapsed:.1f}",
+                             **{k: f"{v:.5f}" for k, v in row.items()}})
+            if on_step is not None:
+                on_step(step, row)
+            if bar is not None:
+                bar.update(1)
+                bar.set_postfix(loss=f"{row['loss']:.3f}", cls=f"{row['cls_last']:.3f}",
+                                box=f"{row['box_last']:.3f}")
+            if step % cfg.ckpt_every == 0 or step == cfg.steps:
+                log_file.flush()
+                _save_checkpoint(ckpt_path, model, opt, step, cfg, elapsed)
+    finally:
+        log_file.close()
+        if bar is not None:
+            bar.close()
+
+    final = _recent_losses(log_path)
+    out = None
+    if step >= cfg.steps:
+        out = Path(weights_out) if weights_out is not None else weights_path(cfg.sensor)
+        meta = {"train_config": asdict(cfg), "steps": step, "wall_s": round(elapsed, 1),
+                "final_losses": final,
+                "command": f"detcal train --sensor {cfg.sensor} --steps {cfg.steps}"}
+        save_weights(model.eval(), out, meta)
+    return TrainResult(weights=out, checkpoint=ckpt_path, log=log_path, steps=step,
+                       wall_s=elapsed, final_losses=final)
+
+
+def _worker_init(_: int) -> None:
+    torch.set_num_threads(1)
