@@ -8,14 +8,13 @@ and indices are then checked by `calibrators.dump.Dump`, whose messages name the
 from __future__ import annotations
 
 import os
-import tempfile
 import zipfile
-from pathlib import Path
 from typing import BinaryIO
 
 import numpy as np
 
 from calibrators.dump import Dump
+from calibrators.io._atomic import atomic_write
 
 REQUIRED_KEYS = ("classes", "score_mode", "frame_ids", "det_frame", "det_logits", "det_boxes",
                  "gt_frame", "gt_labels", "gt_boxes")
@@ -78,17 +77,8 @@ def save_dump(path: str | os.PathLike[str] | BinaryIO, dump: Dump) -> None:
     if hasattr(path, "write"):
         np.savez_compressed(path, **arrays)
         return
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            np.savez_compressed(fh, **arrays)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path, "wb") as fh:
+        np.savez_compressed(fh, **arrays)
 
 
 def _name(path: object) -> str:

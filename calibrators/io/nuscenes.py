@@ -13,9 +13,7 @@ from __future__ import annotations
 import copy
 import json
 import os
-import tempfile
 from collections.abc import Sequence
-from pathlib import Path
 
 import numpy as np
 from scipy.special import logit
@@ -27,6 +25,7 @@ from calibrators._checks import (
     check_probabilities,
 )
 from calibrators.dump import BOX_FIELDS, Dump
+from calibrators.io._atomic import atomic_write
 
 NUSCENES_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
                     "motorcycle", "bicycle", "traffic_cone", "barrier")
@@ -369,12 +368,5 @@ def _box(row: np.ndarray, token: str, ego: np.ndarray, name: str, score: float) 
 
 
 def _write_json(path: str | os.PathLike[str], content: dict) -> None:
-    target = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            json.dump(content, fh, allow_nan=False)
-        os.replace(tmp, target)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_write(path, "w") as fh:
+        json.dump(content, fh, allow_nan=False)

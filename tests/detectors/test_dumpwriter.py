@@ -80,3 +80,17 @@ def test_ground_truth_filters_follow_the_points(model: Detector) -> None:
 def test_bad_cov_source_is_refused(model: Detector) -> None:
     with pytest.raises(ValueError, match="cov_source"):
         build_dump(model, SEEDS[:1], cov_source="dropout")
+
+
+def test_shipped_bootstrap_dump_is_a_valid_lidar_dump():
+    """`make run` fits its default profile from this file (app/bootstrap.py)."""
+    from pathlib import Path
+
+    import detectors
+    from calibrators.io import load_dump
+    from detectors.sim import CLASSES
+
+    path = Path(detectors.__file__).parent / "data" / "lidar_val.npz"
+    dump = load_dump(path)
+    assert dump.classes == tuple(CLASSES) and dump.score_mode == "sigmoid"
+    assert dump.n_frames == 60 and dump.n_layers >= 2 and len(dump.gt_labels) > 0
