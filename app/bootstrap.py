@@ -94,7 +94,11 @@ def ensure_default_profile(settings: Settings, say: Say = print,
             stored = store.put_dump(io.BytesIO(generate_dump_bytes("lidar", n_frames, say)),
                                     "npz")
         dump = load_dump(store.dump_path(stored.sha256))
-        profile = fit_profile(dump, dump_sha256=stored.sha256)
+        # The bundled detector's covariance is the spread of a query's box across decoder
+        # layers; fitting on that source lets clients send `layer_boxes` as the detector
+        # emits them instead of computing a covariance themselves.
+        source = "layers" if dump.n_layers >= 2 else "auto"
+        profile = fit_profile(dump, cov_source=source, dump_sha256=stored.sha256)
         record = store.add_profile(settings.default_profile, profile.to_json(),
                                    dump_sha256=stored.sha256, activate=True)
         say(f"detcal: stored profile {record.ref} (T = {profile.temperature:.3f}, "
