@@ -346,4 +346,8 @@ def _row(label: str, before: float | None, after: float | None) -> str:
 
 
 def _cell(value: float | None) -> str:
-    return f"{'-':>12}" if value is None else f"{value:>12.4f}"
+    """A 12-wide right-aligned number: fixed point, or scientific when it would not fit."""
+    if value is None:
+        return f"{'-':>12}"
+    text = f"{value:.4f}"
+    return f" {text:>11}" if len(text) <= 11 else f" {value:>11.4g}"
