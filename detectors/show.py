@@ -51,8 +51,13 @@ def render_frame(model: Detector, seed: int, out: str | Path, min_score: float =
     scores, labels = det.scores.numpy().astype(np.float64), det.labels.numpy()
     title = f"{model.config.sensor}, scene {seed}: raw scores, {cov_source} covariance"
     if profile is not None:
-        cal = profile.calibrate(logits=det.layer_logits[:, -1].numpy(), boxes=boxes,
-                                covariances=cov, layer_boxes=det.layer_boxes.numpy())
+        # Each profile takes its input covariance from the source it was fit on.
+        source = {"given": {"covariances": cov},
+                  "layers": {"layer_boxes": det.layer_boxes.numpy().astype(np.float64)},
+                  "none": {}}[profile.cov_source]
+        logits = ({"layer_logits": det.layer_logits.numpy()} if profile.modulation
+                  else {"logits": det.layer_logits[:, -1].numpy()})
+        cal = profile.calibrate(boxes=boxes, **logits, **source)
         scores, labels, cov = cal.scores, cal.labels, cal.covariances
         title = f"{model.config.sensor}, scene {seed}: calibrated (profile)"
     keep = scores >= min_score
