@@ -19,7 +19,7 @@ import sys
 import zipfile
 from collections.abc import Sequence
 
-REGISTRARS = ("app.cli_calib", "app.cli_serve", "detectors.cli")
+REGISTRARS = ("app.cli_calib", "app.cli_serve", "detectors.cli", "detectors.report.cli")
 USAGE_ERRORS = (ValueError, OSError, zipfile.BadZipFile, pickle.UnpicklingError)
 
 

@@ -1,0 +1,207 @@
+"""The report's figures (matplotlib, Agg backend), each written as PNG and SVG.
+
+- `reliability_per_class`: reliability diagram per class, vanilla vs calibrated (Fig. 5-10);
+- `calibration_curves`: average calibration curve of x and y per method (Fig. 5-8);
+- `residual_plots`: |residual| vs predicted σ for x, y and combined per method (Fig. 5-9);
+- `bev_before_after`: one test frame, boxes, scores and 95 % ellipses before / after
+  (Figs. 5-11..5-14);
+- `attention_plots`: seed 000's median attention spread vs IoU, distance, layer (Figs. 3-5).
+
+Every function takes plain arrays and a path *stem* (no suffix) and returns the two files.
+Point clouds and scatter points are rasterised inside the SVGs (lines and text stay vector),
+which keeps each SVG under a megabyte.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import numpy as np
+
+from calibrators import ellipse, metrics
+from detectors.report.attention import AttentionStats, Binned
+
+
+def _plt():  # noqa: ANN202 - the pyplot module
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _save(fig: object, stem: Path) -> list[Path]:
+    """Write `fig` as `stem.png` and `stem.svg`, close it, return both paths."""
+    stem = Path(stem)
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    paths = [stem.with_suffix(".png"), stem.with_suffix(".svg")]
+    fig.tight_layout()  # type: ignore[attr-defined]
+    for p in paths:
+        fig.savefig(p, dpi=110)  # type: ignore[attr-defined]
+    _plt().close(fig)
+    return paths
+
+
+def reliability_per_class(classes: Sequence[str], correct: np.ndarray, labels: np.ndarray,
+                          scores: Mapping[str, np.ndarray], stem: Path) -> list[Path]:
+    """One panel per class: accuracy vs confidence (10 bins) of each `scores[method] [N]`
+    against `correct [N]` for the detections labelled with that class (`labels [N]`)."""
+    plt = _plt()
+    cols = 5
+    rows = math.ceil(len(classes) / cols)
+    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
+    for c, name in enumerate(classes):
+        ax = axes[c // cols][c % cols]
+        ax.plot([0, 1], [0, 1], color="0.6", lw=0.8, ls="--")
+        rows_c = labels == c
+        for method, s in scores.items():
+            if not rows_c.any():
+                continue
+            d = metrics.reliability_diagram(s[rows_c], correct[rows_c])
+            ece = metrics.expected_calibration_error(s[rows_c], correct[rows_c])
+            ok = d.count > 0
+            ax.plot(d.confidence[ok], d.accuracy[ok], marker="o", ms=3,
+                    label=f"{method} (ECE {ece:.3f})")
+        ax.set_title(f"{name} ({int(rows_c.sum())} det.)", fontsize=9)
+        ax.set_xlim(0, 1)
+        ax.set_ylim(0, 1)
+        if rows_c.any():
+            ax.legend(fontsize=6, loc="upper left")
+        if c % cols == 0:
+            ax.set_ylabel("precision (TP fraction)")
+        if c // cols == rows - 1:
+            ax.set_xlabel("confidence")
+    for c in range(len(classes), rows * cols):
+        axes[c // cols][c % cols].axis("off")
+    return _save(fig, stem)
+
+
+def calibration_curves(residuals: Mapping[str, np.ndarray], covariances: Mapping[str, np.ndarray],
+                       stem: Path) -> list[Path]:
+    """Average calibration curves of x and y: `residuals[m] [M, 2]`, `covariances[m]
+    [M, 2, 2]` per method (TPs with a zero variance on an axis are left out of that axis)."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
+    for j, axis in enumerate(("x", "y")):
+        ax = axes[j]
+        ax.plot([0, 1], [0, 1], color="0.6", lw=0.8, ls="--", label="ideal")
+        for method, res in residuals.items():
+            std = np.sqrt(np.maximum(covariances[method][:, j, j], 0.0))
+            ok = std > 0
+            if not ok.any():
+                continue
+            curve = metrics.average_calibration_curve(res[ok, j], std[ok], n_bins=50)
+            area = metrics.miscalibration_area(res[ok, j], std[ok], n_bins=50)
+            ax.plot(curve.expected, curve.observed, label=f"{method} (area {area:.3f})")
+        ax.set_title(f"average calibration, {axis}")
+        ax.set_xlabel("expected proportion in interval")
+        ax.set_ylabel("observed proportion in interval")
+        ax.legend(fontsize=8)
+    return _save(fig, stem)
+
+
+def residual_plots(residuals: Mapping[str, np.ndarray], covariances: Mapping[str, np.ndarray],
+                   stem: Path, max_points: int = 2000, seed: int = 0) -> list[Path]:
+    """Per method (rows) and x / y / combined (columns): |residual| against predicted σ on
+    log axes, with the lines |r| = σ and |r| = 3σ and the fraction of points under each."""
+    plt = _plt()
+    methods = list(residuals)
+    fig, axes = plt.subplots(len(methods), 3, figsize=(12, 3.4 * len(methods)), squeeze=False)
+    rng = np.random.default_rng(seed)
+    for i, method in enumerate(methods):
+        res, cov = residuals[method], covariances[method]
+        pick = np.sort(rng.permutation(len(res))[:max_points])
+        parts = [(np.abs(res[:, 0]), np.sqrt(np.maximum(cov[:, 0, 0], 0)), "x"),
+                 (np.abs(res[:, 1]), np.sqrt(np.maximum(cov[:, 1, 1], 0)), "y"),
+                 (np.hypot(res[:, 0], res[:, 1]),
+                  np.sqrt(np.maximum(cov[:, 0, 0] + cov[:, 1, 1], 0)), "x, y")]
+        for j, (r, s, what) in enumerate(parts):
+            ax = axes[i][j]
+            positive = np.concatenate([r[r > 0], s[s > 0]])
+            floor = 0.5 * float(positive.min()) if len(positive) else 1e-6
+            ax.scatter(np.maximum(s[pick], floor), np.maximum(r[pick], floor), s=2, alpha=0.4,
+                       rasterized=True)
+            hi = float(positive.max()) if len(positive) else 1.0
+            grid = np.geomspace(floor, hi * 2, 50)
+            w1, w3 = float(np.mean(r <= s)), float(np.mean(r <= 3 * s))
+            ax.plot(grid, grid, color="tab:orange", label=f"|r| = σ ({w1:.2f} below)")
+            ax.plot(grid, 3 * grid, color="tab:blue", label=f"|r| = 3σ ({w3:.2f} below)")
+            ax.set_xscale("log")
+            ax.set_yscale("log")
+            ax.set_xlabel("predicted σ (m)")
+            ax.set_ylabel("|residual| (m)")
+            ax.set_title(f"{method}: {what}", fontsize=9)
+            ax.legend(fontsize=7)
+    return _save(fig, stem)
+
+
+def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray,
+                     labels: np.ndarray, classes: Sequence[str],
+                     sides: Mapping[str, tuple[np.ndarray, np.ndarray]], stem: Path,
+                     min_score: float = 0.3, confidence: float = 0.95,
+                     extent: float = 51.2) -> list[Path]:
+    """One panel per side: `points [P, >=2]`, GT `gt_boxes [G, 9]` (dashed), detections
+    `boxes [N, 9]` with `labels [N]` whose side's `scores [N] >= min_score`, and the
+    `confidence` ellipse of that side's `cov [N, 2, 2]`; `sides[name] = (scores, cov)`."""
+    plt = _plt()
+    from matplotlib.patches import Ellipse as EllipsePatch
+
+    fig, axes = plt.subplots(1, len(sides), figsize=(8 * len(sides), 8), squeeze=False)
+    for ax, (name, (scores, cov)) in zip(axes[0], sides.items(), strict=True):
+        ax.scatter(points[:, 0], points[:, 1], s=0.5 if len(points) > 5000 else 3, c="0.7",
+                   linewidths=0, rasterized=True)
+        for box in gt_boxes:
+            xy = box_outline(box)
+            ax.plot(xy[:, 0], xy[:, 1], color="tab:green", lw=1.0, ls="--")
+        keep = np.flatnonzero(scores >= min_score)
+        ell = ellipse(cov[keep], confidence=confidence) if len(keep) else None
+        for j, i in enumerate(keep if ell is not None else ()):
+            xy = box_outline(boxes[i])
+            ax.plot(xy[:, 0], xy[:, 1], color="tab:blue", lw=1.1)
+            ax.text(boxes[i, 0], boxes[i, 1] + 1.2, f"{classes[labels[i]]} {scores[i]:.2f}",
+                    fontsize=5, ha="center")
+            ax.add_patch(EllipsePatch((boxes[i, 0], boxes[i, 1]), 2 * ell.semi_major[j],
+                                      2 * ell.semi_minor[j], angle=math.degrees(ell.angle[j]),
+                                      fill=False, color="tab:red", lw=0.9))
+        ax.plot([0], [0], marker="^", color="black", ms=8)
+        ax.set_xlim(-extent, extent)
+        ax.set_ylim(-extent, extent)
+        ax.set_aspect("equal")
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_title(f"{name}: score >= {min_score:g} (blue), ground truth (green dashed), "
+                     f"{confidence:.0%} ellipse (red)", fontsize=8)
+    return _save(fig, stem)
+
+
+def box_outline(box: np.ndarray) -> np.ndarray:
+    """`[5, 2]` closed BEV outline of a box `x y z w l h yaw ...` (l along the heading)."""
+    x, y, w, length, yaw = box[0], box[1], box[3], box[4], box[6]
+    local = np.array([[length, w], [length, -w], [-length, -w], [-length, w],
+                      [length, w]]) / 2.0
+    c, s = math.cos(yaw), math.sin(yaw)
+    return local @ np.array([[c, s], [-s, c]]) + np.array([x, y])
+
+
+def attention_plots(stats: AttentionStats, stem: Path) -> list[Path]:
+    """Median attention spread with 25th-75th percentile bars vs IoU, distance and layer."""
+    plt = _plt()
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    parts: list[tuple[Binned, str]] = [(stats.vs_iou, "IoU with closest ground truth"),
+                                       (stats.vs_distance, "distance from ego"),
+                                       (stats.per_layer, "decoder layer")]
+    for ax, (b, what) in zip(axes, parts, strict=True):
+        x = np.arange(len(b.labels))
+        ok = b.n > 0
+        ax.errorbar(x[ok], b.median[ok], yerr=[b.median[ok] - b.p25[ok], b.p75[ok] - b.median[ok]],
+                    fmt="o", capsize=3)
+        ax.set_xticks(x)
+        ax.set_xticklabels(b.labels, rotation=45, ha="right", fontsize=7)
+        ax.set_yscale("log")
+        ax.set_xlabel(what)
+        ax.set_ylabel("attention spread det(C_K + cell²/12·I) (m⁴)")
+        ax.set_title(f"median AS vs {what}", fontsize=9)
+    return _save(fig, stem)
