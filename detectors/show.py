@@ -15,15 +15,8 @@ import torch
 
 from detectors.infer import detect
 from detectors.model.detector import Detector
+from detectors.sim.geometry import bev_outline
 from detectors.uncertainty import attention_spread, layer_covariance
-
-
-def _corners(box: np.ndarray) -> np.ndarray:
-    """`[5, 2]` closed BEV outline of a box x y z w l h yaw (l along the heading)."""
-    x, y, w, length, yaw = box[0], box[1], box[3], box[4], box[6]
-    local = np.array([[length, w], [length, -w], [-length, -w], [-length, w], [length, w]]) / 2
-    c, s = math.cos(yaw), math.sin(yaw)
-    return local @ np.array([[c, s], [-s, c]]) + np.array([x, y])
 
 
 def render_frame(model: Detector, seed: int, out: str | Path, min_score: float = 0.3,
@@ -70,11 +63,11 @@ def render_frame(model: Detector, seed: int, out: str | Path, min_score: float =
                cmap="viridis", alpha=0.6,
                linewidths=0)
     for box in np.asarray(frame.scene.boxes, dtype=np.float64).reshape(-1, 9):
-        xy = _corners(box)
+        xy = bev_outline(box)
         ax.plot(xy[:, 0], xy[:, 1], color="0.35", lw=1.0, ls="--")
     names = [CLASSES[i] for i in labels[keep]]
     for j, (box, score, name) in enumerate(zip(boxes[keep], scores[keep], names, strict=True)):
-        xy = _corners(box)
+        xy = bev_outline(box)
         ax.plot(xy[:, 0], xy[:, 1], color="tab:red", lw=1.2)
         ax.text(box[0], box[1] + 1.0, f"{name} {score:.2f}", fontsize=5, color="tab:red",
                 ha="center")

@@ -21,6 +21,8 @@ from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.patches import Ellipse as EllipsePatch  # noqa: E402
 from matplotlib.patches import Polygon  # noqa: E402
 
+from detectors.sim.geometry import bev_outline  # noqa: E402
+
 BEFORE, AFTER = "#d62728", "#1f77b4"
 plt.rcParams.update({"svg.fonttype": "none", "font.size": 8, "axes.titlesize": 9,
                      "svg.hashsalt": "detcal"})
@@ -127,14 +129,6 @@ def residual_plot(plots: dict) -> str:
     return to_svg(fig, "Residual plot")
 
 
-def _corners(box: Sequence[float]) -> np.ndarray:
-    x, y, _, w, length, _, yaw = box[:7]
-    c, s = math.cos(yaw), math.sin(yaw)
-    local = np.array([[length / 2, w / 2], [length / 2, -w / 2], [-length / 2, -w / 2],
-                      [-length / 2, w / 2]])
-    return local @ np.array([[c, s], [-s, c]]) + np.array([x, y])
-
-
 def bev(points: np.ndarray, gt_boxes: np.ndarray, panels: Sequence[dict], extent: float,
         title: str) -> str:
     """Bird's-eye view panels of one frame.
@@ -148,11 +142,11 @@ def bev(points: np.ndarray, gt_boxes: np.ndarray, panels: Sequence[dict], extent
             ax.scatter(points[:, 0], points[:, 1], s=0.3, color="0.55", linewidths=0,
                        rasterized=False)
         for box in gt_boxes:
-            ax.add_patch(Polygon(_corners(box), closed=True, fill=False, ec="#2ca02c", lw=0.8))
+            ax.add_patch(Polygon(bev_outline(box), closed=True, fill=False, ec="#2ca02c", lw=0.8))
         color = panel["color"]
         el = panel.get("ellipses")
         for i, (box, score) in enumerate(zip(panel["boxes"], panel["scores"], strict=True)):
-            ax.add_patch(Polygon(_corners(box), closed=True, fill=False, ec=color, lw=0.9))
+            ax.add_patch(Polygon(bev_outline(box), closed=True, fill=False, ec=color, lw=0.9))
             ax.text(box[0], box[1] + 1.5, f"{score:.2f}", fontsize=5, color=color,
                     ha="center")
             if el is not None and el[0][i] > 0:

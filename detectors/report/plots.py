@@ -22,6 +22,7 @@ import numpy as np
 
 from calibrators import ellipse, metrics
 from detectors.report.attention import AttentionStats, Binned
+from detectors.sim.geometry import bev_outline
 
 
 def _plt():  # noqa: ANN202 - the pyplot module
@@ -154,12 +155,12 @@ def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray
         ax.scatter(points[:, 0], points[:, 1], s=0.5 if len(points) > 5000 else 3, c="0.7",
                    linewidths=0, rasterized=True)
         for box in gt_boxes:
-            xy = box_outline(box)
+            xy = bev_outline(box)
             ax.plot(xy[:, 0], xy[:, 1], color="tab:green", lw=1.0, ls="--")
         keep = np.flatnonzero(scores >= min_score)
         ell = ellipse(cov[keep], confidence=confidence) if len(keep) else None
         for j, i in enumerate(keep if ell is not None else ()):
-            xy = box_outline(boxes[i])
+            xy = bev_outline(boxes[i])
             ax.plot(xy[:, 0], xy[:, 1], color="tab:blue", lw=1.1)
             ax.text(boxes[i, 0], boxes[i, 1] + 1.2, f"{classes[labels[i]]} {scores[i]:.2f}",
                     fontsize=5, ha="center")
@@ -175,15 +176,6 @@ def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray
         ax.set_title(f"{name}: score >= {min_score:g} (blue), ground truth (green dashed), "
                      f"{confidence:.0%} ellipse (red)", fontsize=8)
     return _save(fig, stem)
-
-
-def box_outline(box: np.ndarray) -> np.ndarray:
-    """`[5, 2]` closed BEV outline of a box `x y z w l h yaw ...` (l along the heading)."""
-    x, y, w, length, yaw = box[0], box[1], box[3], box[4], box[6]
-    local = np.array([[length, w], [length, -w], [-length, -w], [-length, w],
-                      [length, w]]) / 2.0
-    c, s = math.cos(yaw), math.sin(yaw)
-    return local @ np.array([[c, s], [-s, c]]) + np.array([x, y])
 
 
 def attention_plots(stats: AttentionStats, stem: Path) -> list[Path]:

@@ -21,6 +21,12 @@ def bev_corners(boxes: np.ndarray) -> np.ndarray:
     return np.stack([x, y], axis=-1)
 
 
+def bev_outline(box: np.ndarray) -> np.ndarray:
+    """Closed BEV outline of one box `[>=7]` for drawing: 4 corners, then the first. -> [5, 2]."""
+    corners = bev_corners(np.asarray(box, dtype=np.float64)[None, :7])[0]
+    return np.vstack([corners, corners[:1]])
+
+
 def overlaps(box: np.ndarray, others: np.ndarray, margin: float = 0.1) -> np.ndarray:
     """Whether `box` [>=7] intersects each of `others` [N, >=7] (BEV SAT and z interval).
 
