@@ -20,7 +20,8 @@ from calibrators.fit import fit_profile
 
 log = logging.getLogger("detcal.jobs")
 
-FIT_OPTIONS = ("threshold", "dims", "cov_source", "holdout", "min_score", "min_samples", "seed")
+FIT_OPTIONS = ("threshold", "dims", "cov_source", "holdout", "min_score", "min_samples", "seed",
+               "modulation")
 
 
 def load_job_dump(store: Store, job: JobRecord) -> Any:

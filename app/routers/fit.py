@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Annotated, Literal
 
 from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import JSONResponse
@@ -11,6 +12,9 @@ from app.deps import AdminDep, RunnerDep, SettingsDep, StoreDep
 from app.errors import RequestError
 from app.schemas.common import ErrorResponse, ProfileName
 from app.schemas.profiles import FitAccepted
+
+if TYPE_CHECKING:
+    from calibrators import Dump
 
 router = APIRouter(prefix="/v1", tags=["fit"])
 
@@ -44,6 +48,9 @@ def fit(
     min_score: Annotated[float | None, Form(ge=0.0, le=1.0)] = None,
     min_samples: Annotated[int, Form(ge=1)] = 50,
     seed: Annotated[int, Form(ge=0)] = 0,
+    modulation: Annotated[bool, Form(description="Logits modulation before temperature "
+                                                 "scaling (needs every decoder layer's "
+                                                 "logits: an NPZ dump with L >= 2).")] = False,
     activate: Annotated[bool, Form(description="Activate the new version when it lands (the "
                                                "first version of a name always is).")] = False,
 ) -> JSONResponse:
@@ -56,16 +63,20 @@ def fit(
     profile_name = name or settings.default_profile
     options = {"threshold": threshold, "dims": _dims(dims), "cov_source": cov_source,
                "holdout": holdout, "min_score": min_score, "min_samples": min_samples,
-               "seed": seed}
+               "seed": seed, "modulation": modulation}
     if dump is not None:
         stored = store.put_dump(dump.file, "npz")
         gt_sha = None
-        _check(lambda: load_dump(store.dump_path(stored.sha256)), "dump")
+        loaded = _check(lambda: load_dump(store.dump_path(stored.sha256)), "dump")
     else:
         stored = store.put_dump(results.file, "nuscenes-results")  # type: ignore[union-attr]
         gt_sha = store.put_dump(gt.file, "nuscenes-gt").sha256  # type: ignore[union-attr]
-        _check(lambda: load_nuscenes(store.dump_path(stored.sha256), store.dump_path(gt_sha)),
-               "results")
+        loaded = _check(lambda: load_nuscenes(store.dump_path(stored.sha256),
+                                              store.dump_path(gt_sha)), "results")
+    if modulation and loaded.n_layers < 2:
+        raise RequestError(["body", "modulation"], "logits modulation needs every decoder "
+                                                   f"layer's logits; the upload has "
+                                                   f"{loaded.n_layers} layer")
     job = store.create_job(profile_name, options, stored.sha256, gt_sha, activate)
     runner.notify()
     body = FitAccepted(job_id=job.id, status_url=f"/v1/jobs/{job.id}",
@@ -74,9 +85,9 @@ def fit(
                         headers={"Location": body.status_url})
 
 
-def _check(load: object, field: str) -> None:
+def _check(load: Callable[[], Dump], field: str) -> Dump:
     """Load the stored upload once so a malformed dump is a 422 now, not a failed job later."""
     try:
-        load()  # type: ignore[operator]
+        return load()
     except (ValueError, KeyError, OSError, EOFError) as exc:
         raise RequestError(["body", field], f"not a valid validation dump: {exc}") from None

@@ -72,3 +72,34 @@ def test_jobs_listing(client, npz_bytes, wait):
     wait(client, r.json()["job_id"])
     jobs = client.get("/v1/jobs").json()
     assert jobs[0]["id"] == r.json()["job_id"]
+
+
+def test_fit_with_logits_modulation(empty_client, npz_bytes, dump_given, wait):
+    r = empty_client.post("/v1/fit", headers=ADMIN, files={"dump": ("v.npz", npz_bytes)},
+                          data={"name": "mod", "modulation": "true"})
+    assert r.status_code == 202, r.text
+    job = wait(empty_client, r.json()["job_id"])
+    assert job["state"] == "succeeded", job
+    assert job["options"]["modulation"] is True
+    detail = empty_client.get("/v1/profiles/mod/1").json()
+    assert detail["profile"]["modulation"] is True
+    # the fitted profile is served from every layer's logits, and refuses final logits only
+    det = {"id": 0, "layer_logits": dump_given.det_logits[0].tolist(),
+           "box": dump_given.det_boxes[0, -1].tolist(),
+           "covariance": dump_given.det_cov[0].tolist()}
+    body = {"profile": "mod", "frames": [{"frame_id": "f", "detections": [det]}]}
+    assert empty_client.post("/v1/calibrate", json=body).status_code == 200
+    det.pop("layer_logits")
+    det["logits"] = dump_given.det_logits[0, -1].tolist()
+    assert empty_client.post("/v1/calibrate", json=body).status_code == 422
+
+
+def test_modulation_needs_layer_logits_at_upload(empty_client, dump_given, tmp_path: Path):
+    res, gt = tmp_path / "results.json", tmp_path / "gt.json"
+    save_nuscenes(dump_given, res, gt)      # nuScenes results carry final scores only
+    r = empty_client.post("/v1/fit", headers=ADMIN, data={"modulation": "true"},
+                          files={"results": ("r.json", res.read_bytes()),
+                                 "gt": ("g.json", gt.read_bytes())})
+    assert r.status_code == 422
+    assert r.json()["detail"][0]["loc"] == ["body", "modulation"]
+    assert empty_client.get("/v1/jobs").json() == []
