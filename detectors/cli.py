@@ -34,6 +34,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                        help="require a checkpoint to resume from (resuming is automatic)")
     group.add_argument("--fresh", action="store_true", help="ignore an existing checkpoint")
     tr.add_argument("--workers", type=int, default=None, help="frame-generating workers")
+    tr.add_argument("--threads", type=int, default=None,
+                    help="torch threads (default 2; 1 when two runs share two cores)")
+    tr.add_argument("--base-weights", default=None,
+                    help="train a deep sub-ensemble head: freeze the trunk of this weights "
+                         "file and train a fresh decoder head on it (recipe: "
+                         "SUB_ENSEMBLE_RECIPE, e.g. --out detectors/weights/lidar_dse.pt)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=run_train)
 
@@ -77,10 +83,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    from detectors.registry import SUB_ENSEMBLE_RECIPE
     from detectors.train import TrainConfig, train
 
-    cfg = TrainConfig.for_sensor(args.sensor, steps=args.steps, batch_size=args.batch_size,
-                                 seed=args.seed, workers=args.workers)
+    head_only = dict(SUB_ENSEMBLE_RECIPE, base_weights=args.base_weights) \
+        if args.base_weights else {}
+    if args.base_weights and args.out is None:
+        raise ValueError("--base-weights needs --out (never overwrite the shipped weights "
+                         "with a sub-ensemble head)")
+    cfg = TrainConfig.for_sensor(args.sensor, **{**head_only, **{
+        k: v for k, v in dict(steps=args.steps, batch_size=args.batch_size, seed=args.seed,
+                              workers=args.workers, threads=args.threads).items()
+        if v is not None}})
     run = Path(args.run_dir) if args.run_dir else Path("runs") / args.sensor
     if args.resume and not (run / "ckpt.pt").exists():
         raise ValueError(f"--resume given but there is no checkpoint at {run / 'ckpt.pt'}")

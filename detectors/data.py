@@ -15,7 +15,7 @@ Shapes: points [P, F] float32 (FEATURES order), Target(labels [G] int64, boxes [
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -91,12 +91,14 @@ class TrainSamples(torch.utils.data.Dataset):
 
     Sample k uses seed `seeds[perm_e[k % n]]` with epoch e = k // n and `perm_e` a permutation
     drawn from (`seed`, e), and augmentation drawn from (`seed`, k): resuming at any k gives
-    the very same data as an uninterrupted run.
+    the very same data as an uninterrupted run. `extra_objects` (mean extra objects per
+    class, see `detectors.sim.make_scene`) over-samples rare classes.
     """
 
     def __init__(self, sensor: str, seeds: Sequence[int], features: Sequence[str],
                  half_extent: float, seed: int = 0, n_samples: int = 1 << 30,
-                 augment_data: bool = True) -> None:
+                 augment_data: bool = True,
+                 extra_objects: Mapping[str, float] | None = None) -> None:
         self.sensor = sensor
         self.seeds = np.asarray(list(seeds), dtype=np.int64)
         self.features = tuple(features)
@@ -104,6 +106,7 @@ class TrainSamples(torch.utils.data.Dataset):
         self.seed = seed
         self.n_samples = n_samples
         self.augment_data = augment_data
+        self.extra_objects = dict(extra_objects) if extra_objects else None
         self._perm: dict[int, np.ndarray] = {}
 
     def __len__(self) -> int:
@@ -119,7 +122,8 @@ class TrainSamples(torch.utils.data.Dataset):
     def __getitem__(self, k: int) -> Sample:
         from detectors.sim import make_frame
 
-        sample = frame_sample(make_frame(self.scene_seed(k), self.sensor), self.half_extent)
+        sample = frame_sample(make_frame(self.scene_seed(k), self.sensor,
+                                             self.extra_objects), self.half_extent)
         if self.augment_data:
             rng = np.random.default_rng([self.seed, 1, k])
             sample = augment(sample, self.features, rng)

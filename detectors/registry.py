@@ -35,6 +35,15 @@ _SENSOR_OVERRIDES: dict[str, dict[str, Any]] = {
 _RECIPE: dict[str, Any] = {"steps": 4000, "batch_size": 4, "lr": 2e-3, "weight_decay": 1e-2,
                            "seed": 0}
 TRAIN_RECIPES: dict[str, dict[str, Any]] = {name: dict(_RECIPE) for name in _SENSOR_OVERRIDES}
+# Lidar adds rare-class over-sampling (mean extra objects per training scene; see
+# detectors.sim.traffic.place_extra): about 4x the buses, trailers, construction vehicles,
+# motorcycles and bicycles the world's own frequencies give.
+TRAIN_RECIPES["lidar"]["extra_objects"] = {
+    "truck": 1.0, "bus": 2.0, "trailer": 2.0, "construction_vehicle": 2.0,
+    "motorcycle": 2.0, "bicycle": 2.0}
+# A deep sub-ensemble head (`detcal train --base-weights`): the trunk is trained already, so
+# a fresh decoder head needs fewer steps; everything else is the sensor's recipe.
+SUB_ENSEMBLE_RECIPE: dict[str, Any] = {"steps": 1500, "warmup": 100}
 
 
 def sensor_names() -> tuple[str, ...]:

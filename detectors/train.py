@@ -29,6 +29,7 @@ from detectors.data import TrainSamples, collate
 from detectors.losses import SetCriterion
 from detectors.model.detector import Detector, DetectorConfig
 from detectors.registry import TRAIN_RECIPES, build_detector, save_weights, weights_path
+from detectors.subensemble import attach_trunk, train_mode
 
 LOG_FIELDS = ("step", "lr", "loss", "heatmap", "cls", "box", "cls_last", "box_last",
               "sec_per_step", "elapsed_s")
@@ -50,6 +51,12 @@ class TrainConfig:
     ckpt_every: int = 200
     threads: int = 2
     workers: int = 1
+    # Mean extra objects per class and training scene (rare-class over-sampling, see
+    # detectors.sim.traffic.place_extra); None trains on the world's own class frequencies.
+    extra_objects: dict[str, float] | None = None
+    # Deep sub-ensemble member: copy and freeze the trunk of this weights file, train a
+    # fresh decoder head on it (detectors.subensemble). None trains the whole model.
+    base_weights: str | None = None
 
     @classmethod
     def for_sensor(cls, sensor: str, **overrides: Any) -> TrainConfig:
@@ -131,15 +138,21 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
     np.random.seed(cfg.seed)
     model = Detector(model_config) if model_config is not None else \
         build_detector(cfg.sensor, pretrained=False)
-    model.train()
-    opt = torch.optim.AdamW(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    if cfg.base_weights is not None:
+        attach_trunk(model, cfg.base_weights)
+    train_mode(model, frozen_trunk=cfg.base_weights is not None)
+    opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
+                            weight_decay=cfg.weight_decay)
     start, elapsed = 0, 0.0
     if resume and ckpt_path.exists():
         ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        if ckpt["train_config"]["seed"] != cfg.seed or \
-                ckpt["train_config"]["batch_size"] != cfg.batch_size:
-            raise ValueError(f"{ckpt_path} was trained with another seed or batch size; "
-                             "start fresh (--fresh) or use another run directory")
+        saved = ckpt["train_config"]
+        if saved["seed"] != cfg.seed or saved["batch_size"] != cfg.batch_size or \
+                saved.get("extra_objects") != cfg.extra_objects or \
+                saved.get("base_weights") != cfg.base_weights:
+            raise ValueError(f"{ckpt_path} was trained with another seed, batch size, "
+                             "object sampling or base model; start fresh (--fresh) or use "
+                             "another run directory")
         model.load_state_dict(ckpt["model"])
         opt.load_state_dict(ckpt["optimizer"])
         torch.set_rng_state(ckpt["torch_rng"])
@@ -152,7 +165,8 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
     criterion = SetCriterion(model.fine_grid, len(model.config.classes))
     data = TrainSamples(cfg.sensor, SPLITS["train"], model.config.features,
                         model.grid.half_extent, seed=cfg.seed,
-                        n_samples=cfg.steps * cfg.batch_size)
+                        n_samples=cfg.steps * cfg.batch_size,
+                        extra_objects=cfg.extra_objects)
     sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
     loader = torch.utils.data.DataLoader(
         data, batch_size=cfg.batch_size, sampler=sampler, collate_fn=collate,
@@ -213,7 +227,9 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
         out = Path(weights_out) if weights_out is not None else weights_path(cfg.sensor)
         meta = {"train_config": asdict(cfg), "steps": step, "wall_s": round(elapsed, 1),
                 "final_losses": final,
-                "command": f"detcal train --sensor {cfg.sensor} --steps {cfg.steps}"}
+                "command": f"detcal train --sensor {cfg.sensor} --steps {cfg.steps} "
+                           f"--seed {cfg.seed}"
+                           + (f" --base-weights {cfg.base_weights}" if cfg.base_weights else "")}
         save_weights(model.eval(), out, meta)
     return TrainResult(weights=out, checkpoint=ckpt_path, log=log_path, steps=step,
                        wall_s=elapsed, final_losses=final)

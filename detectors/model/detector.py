@@ -25,7 +25,7 @@ origin metres).
 from __future__ import annotations
 
 from dataclasses import asdict, dataclass, field
-from typing import Any
+from typing import Any, NamedTuple
 
 import torch
 from torch import Tensor, nn
@@ -70,6 +70,16 @@ class DetectorConfig:
         return cls(**data)
 
 
+class Encoded(NamedTuple):
+    """What the trunk hands the decoder: query init, memory [B, T, D], memory_pos [1, T, D].
+
+    Deep sub-ensemble members share the trunk, so one `encode` serves all their decoders."""
+
+    init: Any
+    memory: Tensor
+    memory_pos: Tensor
+
+
 class Detector(nn.Module):
     """BEV DETR detector; see the module docstring for the output dict."""
 
@@ -96,11 +106,20 @@ class Detector(nn.Module):
         self.register_buffer("token_centres", self.token_grid.centres(), persistent=False)
 
     def forward(self, points: list[Tensor]) -> dict[str, Tensor]:
+        return self.decode(self.encode(points))
+
+    def encode(self, points: list[Tensor]) -> Encoded:
+        """The trunk: pillars, backbone, heatmap queries and the cross-attention memory."""
         pillars = self.pillars(points)
         bev = self.backbone(pillars)
         init = self.queries(bev.fine)
         memory = bev.coarse.flatten(2).transpose(1, 2)  # [B, T, D]
         memory_pos = self.position(self.token_centres)[None]  # [1, T, D]
+        return Encoded(init, memory, memory_pos)
+
+    def decode(self, enc: Encoded) -> dict[str, Tensor]:
+        """The decoder layers and their heads on an `encode` result (the output dict)."""
+        init, memory, memory_pos = enc.init, enc.memory, enc.memory_pos
         query = init.content
         anchors = init.anchors
         logits, encoded, boxes, attention, anchor_list = [], [], [], [], []

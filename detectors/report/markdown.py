@@ -16,20 +16,23 @@ if TYPE_CHECKING:
     from detectors.report.sensor import ReportOptions, SensorReport
 
 DE_COMMANDS = """\
-Deep ensembles (DE N = 2/4) and the deep sub-ensemble (DSE N = 2) need extra trained weights
-that do not exist yet. The report picks them up automatically once these files exist:
+Deep ensembles (DE N = 2/4): member 0 is the shipped `lidar.pt` (training seed 0), the others
+are the same recipe with seeds 1-3; the deep sub-ensemble (DSE N = 2) is the shipped model
+plus one new decoder head trained on its frozen trunk (thesis 4.3.3; merged by query index
+like MC dropout, since both heads decode the same heatmap queries; the trunk runs once per
+frame). The weights ship in `detectors/weights/`; they were trained with:
 
 ```
 detcal train --sensor lidar --seed 1 --run-dir runs/lidar_de1 --out detectors/weights/lidar_de1.pt
 detcal train --sensor lidar --seed 2 --run-dir runs/lidar_de2 --out detectors/weights/lidar_de2.pt
 detcal train --sensor lidar --seed 3 --run-dir runs/lidar_de3 --out detectors/weights/lidar_de3.pt
+detcal train --sensor lidar --seed 1 --base-weights detectors/weights/lidar.pt \\
+    --run-dir runs/lidar_dse --out detectors/weights/lidar_dse.pt
 ```
 
-(member 0 is the shipped `lidar.pt`; DE N=2 uses `lidar_de1.pt`, DE N=4 `lidar_de1..3.pt`; the
-same for other sensors). DSE N=2 expects `detectors/weights/{sensor}_dse.pt`: a detector whose
-trunk is the shipped one (frozen) and whose heads were trained with another seed; it is merged
-by query index like MC dropout. Until then these rows read "not trained" — they are never
-estimated or copied from elsewhere."""
+The report picks up `{sensor}_de{i}.pt` and `{sensor}_dse.pt` for any sensor where they
+exist; only lidar has them (the CPU budget of 2 cores: each member trains in about 25 min).
+Rows without weights read "not trained"; they are never estimated or copied from elsewhere."""
 
 
 def sensor_section(r: SensorReport, options: ReportOptions) -> str:

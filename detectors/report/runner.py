@@ -11,7 +11,8 @@ a re-run of `detcal report` only redoes what changed. Methods:
   pass m of scene s runs under `torch.manual_seed(mc_seed(s, m))`, so a pass does not depend
   on the frames before it; all Q queries, final layer only (merged later by query index);
 - `de` / `dse`: extra weights files as members (member 0 = the shipped model), all Q
-  queries, final layer only.
+  queries, final layer only; sub-ensemble members share the shipped trunk, so the trunk runs
+  once per frame and only the decoder heads run per member (`Detector.encode` / `decode`).
 
 Shapes in a `Passes` (N rows pooled over frames and members, L' layers kept, C classes):
 
@@ -180,6 +181,12 @@ def _compute(sensor: str, seeds: list[int], specs: list[MethodSpec], max_detecti
         gt_frame.append(np.full(len(boxes), i, dtype=np.int64))
         points = torch.from_numpy(np.array(frame.sensor_frame.points, dtype=np.float32))
         for spec in specs:
+            encoded = None
+            if spec.name == "dse":   # members share the trunk: one encode serves all heads
+                with torch.no_grad():
+                    start = time.perf_counter()
+                    encoded = models["dse"][0].encode([points])
+                    seconds["dse"][0] += time.perf_counter() - start
             for m in range(spec.n_members):
                 model = models[spec.name][0 if spec.name == "mcd" else m]
                 token_cell = float(model.token_grid.cell)
@@ -187,7 +194,7 @@ def _compute(sensor: str, seeds: list[int], specs: list[MethodSpec], max_detecti
                     torch.manual_seed(mc_seed(seed, m))
                 with torch.no_grad():
                     start = time.perf_counter()
-                    outputs = model([points])
+                    outputs = model([points]) if encoded is None else model.decode(encoded)
                     seconds[spec.name][m] += time.perf_counter() - start
                 rows[spec.name].append(_keep(outputs, model, spec.name, max_detections, i, m))
         if progress is not None:
@@ -215,7 +222,15 @@ def _models(sensor: str, spec: MethodSpec) -> list:
 
     if spec.name == "mcd":
         return [enable_mc_dropout(build_detector(sensor, weights=spec.weights[0]))]
-    return [build_detector(sensor, weights=w) for w in spec.weights]
+    models = [build_detector(sensor, weights=w) for w in spec.weights]
+    if spec.name == "dse":
+        from detectors.subensemble import same_trunk
+
+        for w, m in zip(spec.weights[1:], models[1:], strict=True):
+            if not same_trunk(models[0], m):
+                raise ValueError(f"{w} is not a sub-ensemble head of {spec.weights[0]}: its "
+                                 "trunk differs (retrain it with --base-weights)")
+    return models
 
 
 def _keep(outputs: dict, model: object, method: str, max_detections: int, frame: int,

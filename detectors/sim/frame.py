@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
@@ -81,10 +82,11 @@ def render(scene: Scene, sensor: str) -> SensorFrame:
     return SensorFrame(sensor, points, counts, owner.astype(np.int64))
 
 
-def make_frame(seed: int, sensor: str) -> Frame:
-    """``Frame(make_scene(seed), render(scene, sensor))``."""
+def make_frame(seed: int, sensor: str,
+               extra_objects: Mapping[str, float] | None = None) -> Frame:
+    """``Frame(make_scene(seed, extra_objects), render(scene, sensor))``."""
     check_sensor(sensor)
-    scene = make_scene(seed)
+    scene = make_scene(seed, extra_objects)
     return Frame(scene, render(scene, sensor))
 
 

@@ -2,14 +2,16 @@
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 
+from detectors.sim.classes import CLASSES
 from detectors.sim.layout import Road, sample_road
 from detectors.sim.placement import Placer
 from detectors.sim.street import place_street
-from detectors.sim.traffic import place_crossing, place_free, place_road_works
+from detectors.sim.traffic import place_crossing, place_extra, place_free, place_road_works
 
 
 @dataclass(frozen=True, eq=False)
@@ -54,10 +56,21 @@ class Scene:
         return np.concatenate([self.boxes.astype(np.float64), static], axis=0)
 
 
-def make_scene(seed: int) -> Scene:
-    """Build the scene of `seed` (``np.random.default_rng(seed)``); same seed, same scene."""
+def make_scene(seed: int, extra_objects: Mapping[str, float] | None = None) -> Scene:
+    """Build the scene of `seed` (``np.random.default_rng(seed)``); same seed, same scene.
+
+    `extra_objects` (training only): mean number of additional objects per class, placed
+    after the scene is complete from a separate stream (``default_rng([seed, 1])``), so the
+    seed's own objects are exactly those of ``make_scene(seed)``.
+    """
     if isinstance(seed, bool) or not isinstance(seed, int | np.integer) or seed < 0:
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+    if extra_objects is not None:
+        unknown = sorted(set(extra_objects) - set(CLASSES))
+        if unknown:
+            raise ValueError(f"extra_objects: unknown classes {unknown}")
+        if any(not np.isfinite(v) or v < 0 for v in extra_objects.values()):
+            raise ValueError("extra_objects: means must be finite and >= 0")
     rng = np.random.default_rng(int(seed))
     road = sample_road(rng)
     placer = Placer(rng, road)
@@ -67,6 +80,9 @@ def make_scene(seed: int) -> Scene:
     place_crossing(placer)
     place_free(placer, int(rng.integers(14, 32)))
     ego_speed = 0.0 if rng.random() < 0.2 else rng.uniform(3.0, 14.0)
+    if extra_objects:
+        placer.rng = np.random.default_rng([int(seed), 1])
+        place_extra(placer, extra_objects)
 
     boxes = np.asarray(placer.boxes, dtype=np.float32).reshape(-1, 9)
     static = np.asarray(placer.static_boxes, dtype=np.float32).reshape(-1, 7)

@@ -7,6 +7,8 @@ the ego frame, as nuScenes annotates them.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
+
 import numpy as np
 
 from detectors.sim.classes import CLASS_SPECS, CLASSES
@@ -106,6 +108,23 @@ def place_free(placer: Placer, n: int, max_total: int = 40) -> None:
             _try(placer, lambda nm=name: _vehicle_pose(placer, nm))
         else:  # a stray cone or barrier at the kerb
             _try(placer, lambda nm=name: _kerb_pose(placer, nm))
+
+
+def place_extra(placer: Placer, means: Mapping[str, float]) -> None:
+    """Training-time object sampling: Poisson(`means[c]`) extra objects of class c, each
+    placed where its class belongs (the simulated counterpart of mmdet3d's ObjectSample /
+    GT-database pasting, which every nuScenes detector uses to see rare classes more often).
+    The sensor then renders them like any other object, occlusion included."""
+    rng = placer.rng
+    for name in CLASSES:
+        mean = float(means.get(name, 0.0))
+        for _ in range(int(rng.poisson(mean)) if mean > 0 else 0):
+            if name == "pedestrian":
+                _try(placer, lambda: _sidewalk_pose(placer, "pedestrian"))
+            elif name in MOTION:
+                _try(placer, lambda nm=name: _vehicle_pose(placer, nm))
+            else:
+                _try(placer, lambda nm=name: _kerb_pose(placer, nm))
 
 
 Pose = tuple[str, float, float, float, float]

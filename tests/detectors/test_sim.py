@@ -186,3 +186,22 @@ def test_radar_radial_velocity_is_relative_doppler() -> None:
     assert np.all(pts[:, 4] < -8.0)  # static car seen from a moving ego approaches
     comp = compensate_radial_velocity(pts, scene.ego_velocity)
     assert np.abs(comp).max() < 1.0
+
+
+def test_extra_objects_add_to_the_seeds_own_scene() -> None:
+    rare = {"bus": 2.0, "bicycle": 2.0}
+    counts = {"plain": 0, "extra": 0}
+    for seed in range(30):
+        plain, extra = make_scene(seed), make_scene(seed, rare)
+        assert np.array_equal(plain.boxes, extra.boxes[:plain.num_objects])
+        assert np.array_equal(plain.labels, extra.labels[:plain.num_objects])
+        for name, scene in (("plain", plain), ("extra", extra)):
+            counts[name] += int(np.isin(scene.labels, [CLASSES.index(c) for c in rare]).sum())
+        boxes = extra.boxes.astype(np.float64)
+        for i in range(len(boxes)):
+            assert not overlaps(boxes[i], np.delete(boxes, i, axis=0), margin=0.0).any()
+    assert counts["extra"] > 2 * counts["plain"]
+    with pytest.raises(ValueError, match="extra_objects"):
+        make_scene(0, {"unicorn": 1.0})
+    with pytest.raises(ValueError, match="extra_objects"):
+        make_scene(0, {"bus": -1.0})
