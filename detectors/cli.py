@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     tr.add_argument("--base-weights", default=None,
                     help="train a deep sub-ensemble head: freeze the trunk of this weights "
                          "file and train a fresh decoder head on it (recipe: "
-                         "SUB_ENSEMBLE_RECIPE, e.g. --out detectors/weights/lidar_dse.pt)")
+                         "SUB_ENSEMBLE_RECIPE, e.g. --out detectors/weights/lidar_dse1.pt)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
     tr.set_defaults(func=run_train)
 

@@ -17,8 +17,8 @@ if TYPE_CHECKING:
 
 DE_COMMANDS = """\
 Deep ensembles (DE N = 2/4): member 0 is the shipped `lidar.pt` (training seed 0), the others
-are the same recipe with seeds 1-3; the deep sub-ensemble (DSE N = 2) is the shipped model
-plus one new decoder head trained on its frozen trunk (thesis 4.3.3; merged by query index
+are the same recipe with seeds 1-3; the deep sub-ensemble (DSE N = 2) is two new decoder
+heads trained on the frozen trunk of the shipped model (thesis 4.3.3; merged by query index
 like MC dropout, since both heads decode the same heatmap queries; the trunk runs once per
 frame). The weights ship in `detectors/weights/`; they were trained with:
 
@@ -27,10 +27,12 @@ detcal train --sensor lidar --seed 1 --run-dir runs/lidar_de1 --out detectors/we
 detcal train --sensor lidar --seed 2 --run-dir runs/lidar_de2 --out detectors/weights/lidar_de2.pt
 detcal train --sensor lidar --seed 3 --run-dir runs/lidar_de3 --out detectors/weights/lidar_de3.pt
 detcal train --sensor lidar --seed 1 --base-weights detectors/weights/lidar.pt \\
-    --run-dir runs/lidar_dse --out detectors/weights/lidar_dse.pt
+    --run-dir runs/lidar_dse1 --out detectors/weights/lidar_dse1.pt
+detcal train --sensor lidar --seed 2 --base-weights detectors/weights/lidar.pt \\
+    --run-dir runs/lidar_dse2 --out detectors/weights/lidar_dse2.pt
 ```
 
-The report picks up `{sensor}_de{i}.pt` and `{sensor}_dse.pt` for any sensor where they
+The report picks up `{sensor}_de{i}.pt` and `{sensor}_dse{1,2}.pt` for any sensor where they
 exist; only lidar has them (the CPU budget of 2 cores: each member trains in about 25 min).
 Rows without weights read "not trained"; they are never estimated or copied from elsewhere."""
 

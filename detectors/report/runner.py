@@ -10,9 +10,10 @@ a re-run of `detcal report` only redoes what changed. Methods:
 - `mcd`: the shipped model with dropout on (`infer.enable_mc_dropout`), `n_members` passes;
   pass m of scene s runs under `torch.manual_seed(mc_seed(s, m))`, so a pass does not depend
   on the frames before it; all Q queries, final layer only (merged later by query index);
-- `de` / `dse`: extra weights files as members (member 0 = the shipped model), all Q
-  queries, final layer only; sub-ensemble members share the shipped trunk, so the trunk runs
-  once per frame and only the decoder heads run per member (`Detector.encode` / `decode`).
+- `de` / `dse`: one weights file per member (DE: member 0 = the shipped model; DSE: the new
+  heads), all Q queries, final layer only; sub-ensemble members share the shipped trunk, so
+  the trunk runs once per frame and only the decoder heads run per member
+  (`Detector.encode` / `decode`).
 
 Shapes in a `Passes` (N rows pooled over frames and members, L' layers kept, C classes):
 

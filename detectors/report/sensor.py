@@ -75,15 +75,19 @@ class SensorReport:
 
 
 def weights_for(sensor: str, kind: str, n: int) -> tuple[Path, ...] | None:
-    """Member weights of `kind` ("de" | "dse") with `n` members (member 0 = shipped), or
-    None if one is missing: `{sensor}_de{i}.pt` (i = 1..n-1), `{sensor}_dse.pt` (n = 2)."""
+    """Member weights of `kind` with `n` members, or None if one is missing.
+
+    "de": the shipped model then `{sensor}_de{i}.pt` (i = 1..n-1); "dse": the `n` heads
+    trained on the shipped model's frozen trunk, `{sensor}_dse{i}.pt` (i = 1..n; the thesis's
+    sub-ensemble is made of the new heads only)."""
     from detectors.registry import WEIGHTS_DIR, weights_path
 
-    extra = ([WEIGHTS_DIR / f"{sensor}_de{i}.pt" for i in range(1, n)] if kind == "de"
-             else [WEIGHTS_DIR / f"{sensor}_dse.pt"])
-    if not all(p.exists() for p in extra):
-        return None
-    return (weights_path(sensor), *extra)
+    if kind == "de":
+        members = [weights_path(sensor), *(WEIGHTS_DIR / f"{sensor}_de{i}.pt"
+                                           for i in range(1, n))]
+    else:
+        members = [WEIGHTS_DIR / f"{sensor}_dse{i}.pt" for i in range(1, n + 1)]
+    return tuple(members) if all(p.exists() for p in members) else None
 
 
 def build_sensor(sensor: str, options: ReportOptions, log: Log = print) -> SensorReport:

@@ -117,8 +117,11 @@ def test_ensemble_weights_are_found_only_when_every_member_exists(
     assert weights_for("lidar", "de", 2) == (tmp_path / "lidar.pt", tmp_path / "lidar_de1.pt")
     assert weights_for("lidar", "de", 4) is None
     assert weights_for("lidar", "dse", 2) is None
-    (tmp_path / "lidar_dse.pt").write_bytes(b"x")
-    assert weights_for("lidar", "dse", 2) == (tmp_path / "lidar.pt", tmp_path / "lidar_dse.pt")
+    (tmp_path / "lidar_dse1.pt").write_bytes(b"x")
+    assert weights_for("lidar", "dse", 2) is None
+    (tmp_path / "lidar_dse2.pt").write_bytes(b"x")
+    assert weights_for("lidar", "dse", 2) == (tmp_path / "lidar_dse1.pt",
+                                              tmp_path / "lidar_dse2.pt")
 
 
 # -- rows on synthetic dumps --------------------------------------------------------------------
