@@ -90,6 +90,20 @@ def weights_for(sensor: str, kind: str, n: int) -> tuple[Path, ...] | None:
     return tuple(members) if all(p.exists() for p in members) else None
 
 
+def _check_sub_ensemble(sensor: str, heads: tuple[Path, ...]) -> None:
+    """Sub-ensemble heads must sit on the shipped model's trunk (stale heads after a retrain
+    of the shipped model would measure another model)."""
+    from detectors.registry import build_detector
+    from detectors.subensemble import same_trunk
+
+    shipped = build_detector(sensor)
+    for path in heads:
+        if not same_trunk(shipped, build_detector(sensor, weights=path)):
+            raise ValueError(f"{path} was not trained on the trunk of the shipped {sensor} "
+                             f"model; retrain it with `detcal train --sensor {sensor} "
+                             f"--base-weights detectors/weights/{sensor}.pt --out {path}`")
+
+
 def build_sensor(sensor: str, options: ReportOptions, log: Log = print) -> SensorReport:
     """The whole report of `sensor` (module docstring)."""
     from detectors.registry import weights_path
@@ -113,6 +127,7 @@ def build_sensor(sensor: str, options: ReportOptions, log: Log = print) -> Senso
         test_specs.append(MethodSpec("de", de, len(de)))
     dse = weights_for(sensor, "dse", 2)
     if dse is not None:
+        _check_sub_ensemble(sensor, dse)
         test_specs.append(MethodSpec("dse", dse, 2))
 
     def progress(split: str, i: int, n: int) -> None:

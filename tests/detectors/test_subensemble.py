@@ -103,3 +103,18 @@ def test_resume_refuses_another_base_model(tmp_path: Path, tiny_config) -> None:
     with pytest.raises(ValueError, match="base model"):
         train(_cfg(base_weights=str(base.weights)), run_dir=tmp_path / "base",
               weights_out=tmp_path / "x.pt", progress=False, model_config=model_cfg)
+
+
+def test_report_refuses_heads_of_another_trunk(trained: tuple[Path, Path, Path], tmp_path: Path,
+                                               monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+
+    import detectors.registry as registry
+    from detectors.report.sensor import _check_sub_ensemble
+
+    base, head, other = trained
+    monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
+    shutil.copy(base, tmp_path / "lidar.pt")
+    _check_sub_ensemble("lidar", (head,))             # a head on the shipped trunk: fine
+    with pytest.raises(ValueError, match="not trained on the trunk of the shipped lidar"):
+        _check_sub_ensemble("lidar", (head, other))
