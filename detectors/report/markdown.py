@@ -33,7 +33,8 @@ detcal train --sensor lidar --seed 2 --base-weights detectors/weights/lidar.pt \
 ```
 
 The report picks up `{sensor}_de{i}.pt` and `{sensor}_dse{1,2}.pt` for any sensor where they
-exist; only lidar has them (the CPU budget of 2 cores: each member trains in about 25 min).
+exist; only lidar has them (the CPU budget of 2 cores: a member takes about 22 min alone,
+37-43 min when two train side by side).
 Rows without weights read "not trained"; they are never estimated or copied from elsewhere."""
 
 
