@@ -58,6 +58,14 @@ class TrainConfig:
     # fresh decoder head on it (detectors.subensemble). None trains the whole model.
     base_weights: str | None = None
 
+    def __post_init__(self) -> None:
+        for name in ("steps", "batch_size", "threads", "ckpt_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.workers < 0 or self.warmup < 0:
+            raise ValueError(f"workers and warmup must be >= 0, got {self.workers}, "
+                             f"{self.warmup}")
+
     @classmethod
     def for_sensor(cls, sensor: str, **overrides: Any) -> TrainConfig:
         if sensor not in TRAIN_RECIPES:

@@ -53,3 +53,9 @@ def test_learning_rate_warms_up_then_decays() -> None:
     assert lrs[0] == pytest.approx(1e-5) and lrs[99] == pytest.approx(1e-3)
     assert all(x >= y for x, y in zip(lrs[100:], lrs[101:], strict=False))
     assert lrs[-1] == pytest.approx(cfg.lr * cfg.min_lr_ratio, rel=1e-2)
+
+
+@pytest.mark.parametrize("field", ["steps", "batch_size", "threads"])
+def test_bad_config_is_a_named_error(field: str) -> None:
+    with pytest.raises(ValueError, match=field):
+        TrainConfig.for_sensor("lidar", **{field: 0})
