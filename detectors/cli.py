@@ -83,18 +83,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run_train(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from detectors.registry import SUB_ENSEMBLE_RECIPE
     from detectors.train import TrainConfig, train
 
-    head_only = dict(SUB_ENSEMBLE_RECIPE, base_weights=args.base_weights) \
-        if args.base_weights else {}
     if args.base_weights and args.out is None:
         raise ValueError("--base-weights needs --out (never overwrite the shipped weights "
                          "with a sub-ensemble head)")
-    cfg = TrainConfig.for_sensor(args.sensor, **{**head_only, **{
-        k: v for k, v in dict(steps=args.steps, batch_size=args.batch_size, seed=args.seed,
-                              workers=args.workers, threads=args.threads).items()
-        if v is not None}})
+    cfg = TrainConfig.for_sensor(args.sensor, steps=args.steps, batch_size=args.batch_size,
+                                 seed=args.seed, workers=args.workers, threads=args.threads,
+                                 base_weights=args.base_weights)
     run = Path(args.run_dir) if args.run_dir else Path("runs") / args.sensor
     if args.resume and not (run / "ckpt.pt").exists():
         raise ValueError(f"--resume given but there is no checkpoint at {run / 'ckpt.pt'}")

@@ -7,12 +7,12 @@ Detections above `min_score` are drawn as boxes labelled with class and score, w
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from detectors.bevplot import add_ellipse, finish_bev_axes
 from detectors.infer import detect
 from detectors.model.detector import Detector
 from detectors.sim.geometry import bev_outline
@@ -27,7 +27,6 @@ def render_frame(model: Detector, seed: int, out: str | Path, min_score: float =
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.patches import Ellipse as EllipsePatch
 
     from calibrators import ellipse
     from detectors.sim import CLASSES, make_frame
@@ -72,15 +71,8 @@ def render_frame(model: Detector, seed: int, out: str | Path, min_score: float =
         ax.text(box[0], box[1] + 1.0, f"{name} {score:.2f}", fontsize=5, color="tab:red",
                 ha="center")
         if ell is not None:
-            ax.add_patch(EllipsePatch(
-                (box[0], box[1]), 2 * ell.semi_major[j], 2 * ell.semi_minor[j],
-                angle=math.degrees(ell.angle[j]), fill=False, color="tab:orange", lw=0.9))
-    ax.plot([0], [0], marker="^", color="black", ms=8)
-    ax.set_xlim(-half, half)
-    ax.set_ylim(-half, half)
-    ax.set_aspect("equal")
-    ax.set_xlabel("x (m)")
-    ax.set_ylabel("y (m)")
+            add_ellipse(ax, box[0], box[1], ell, j, "tab:orange")
+    finish_bev_axes(ax, half)
     ax.set_title(f"{title}; grey dashed: ground truth, red: score >= {min_score}, "
                  f"orange: {int(confidence * 100)} % ellipse", fontsize=8)
     out = Path(out)

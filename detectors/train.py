@@ -28,7 +28,13 @@ import torch
 from detectors.data import TrainSamples, collate
 from detectors.losses import SetCriterion
 from detectors.model.detector import Detector, DetectorConfig
-from detectors.registry import TRAIN_RECIPES, build_detector, save_weights, weights_path
+from detectors.registry import (
+    SUB_ENSEMBLE_RECIPE,
+    TRAIN_RECIPES,
+    build_detector,
+    save_weights,
+    weights_path,
+)
 from detectors.subensemble import attach_trunk, train_mode
 
 LOG_FIELDS = ("step", "lr", "loss", "heatmap", "cls", "box", "cls_last", "box_last",
@@ -70,7 +76,10 @@ class TrainConfig:
     def for_sensor(cls, sensor: str, **overrides: Any) -> TrainConfig:
         if sensor not in TRAIN_RECIPES:
             raise ValueError(f"sensor must be one of {list(TRAIN_RECIPES)}, got {sensor!r}")
-        base = cls(sensor=sensor, **TRAIN_RECIPES[sensor])
+        recipe = dict(TRAIN_RECIPES[sensor])
+        if overrides.get("base_weights") is not None:   # a sub-ensemble head
+            recipe.update(SUB_ENSEMBLE_RECIPE)
+        base = cls(sensor=sensor, **recipe)
         return replace(base, **{k: v for k, v in overrides.items() if v is not None})
 
 

@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from calibrators import ellipse, metrics
+from detectors.bevplot import add_ellipse, finish_bev_axes
 from detectors.report.attention import AttentionStats, Binned
 from detectors.sim.geometry import bev_outline
 
@@ -148,8 +149,6 @@ def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray
     `boxes [N, 9]` with `labels [N]` whose side's `scores [N] >= min_score`, and the
     `confidence` ellipse of that side's `cov [N, 2, 2]`; `sides[name] = (scores, cov)`."""
     plt = _plt()
-    from matplotlib.patches import Ellipse as EllipsePatch
-
     fig, axes = plt.subplots(1, len(sides), figsize=(8 * len(sides), 8), squeeze=False)
     for ax, (name, (scores, cov)) in zip(axes[0], sides.items(), strict=True):
         ax.scatter(points[:, 0], points[:, 1], s=0.5 if len(points) > 5000 else 3, c="0.7",
@@ -164,15 +163,8 @@ def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray
             ax.plot(xy[:, 0], xy[:, 1], color="tab:blue", lw=1.1)
             ax.text(boxes[i, 0], boxes[i, 1] + 1.2, f"{classes[labels[i]]} {scores[i]:.2f}",
                     fontsize=5, ha="center")
-            ax.add_patch(EllipsePatch((boxes[i, 0], boxes[i, 1]), 2 * ell.semi_major[j],
-                                      2 * ell.semi_minor[j], angle=math.degrees(ell.angle[j]),
-                                      fill=False, color="tab:red", lw=0.9))
-        ax.plot([0], [0], marker="^", color="black", ms=8)
-        ax.set_xlim(-extent, extent)
-        ax.set_ylim(-extent, extent)
-        ax.set_aspect("equal")
-        ax.set_xlabel("x (m)")
-        ax.set_ylabel("y (m)")
+            add_ellipse(ax, boxes[i, 0], boxes[i, 1], ell, j, "tab:red")
+        finish_bev_axes(ax, extent)
         ax.set_title(f"{name}: score >= {min_score:g} (blue), ground truth (green dashed), "
                      f"{confidence:.0%} ellipse (red)", fontsize=8)
     return _save(fig, stem)

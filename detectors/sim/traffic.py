@@ -100,14 +100,9 @@ def place_free(placer: Placer, n: int, max_total: int = 40) -> None:
         if len(placer.boxes) >= max_total:
             break
         name = CLASSES[int(k)]
-        if name == "pedestrian":
-            _try(placer, lambda: _sidewalk_pose(placer, "pedestrian"))
-            if rng.random() < 0.3:  # a companion walking alongside
-                _try(placer, lambda: _sidewalk_pose(placer, "pedestrian"))
-        elif name in MOTION:
-            _try(placer, lambda nm=name: _vehicle_pose(placer, nm))
-        else:  # a stray cone or barrier at the kerb
-            _try(placer, lambda nm=name: _kerb_pose(placer, nm))
+        _place_where_it_belongs(placer, name)
+        if name == "pedestrian" and rng.random() < 0.3:  # a companion walking alongside
+            _place_where_it_belongs(placer, name)
 
 
 def place_extra(placer: Placer, means: Mapping[str, float]) -> None:
@@ -119,15 +114,20 @@ def place_extra(placer: Placer, means: Mapping[str, float]) -> None:
     for name in CLASSES:
         mean = float(means.get(name, 0.0))
         for _ in range(int(rng.poisson(mean)) if mean > 0 else 0):
-            if name == "pedestrian":
-                _try(placer, lambda: _sidewalk_pose(placer, "pedestrian"))
-            elif name in MOTION:
-                _try(placer, lambda nm=name: _vehicle_pose(placer, nm))
-            else:
-                _try(placer, lambda nm=name: _kerb_pose(placer, nm))
+            _place_where_it_belongs(placer, name)
 
 
 Pose = tuple[str, float, float, float, float]
+
+
+def _place_where_it_belongs(placer: Placer, name: str) -> bool:
+    """One object of class `name`: pedestrians on a sidewalk, vehicles in a lane or parked,
+    cones and barriers (stray ones) at the kerb."""
+    if name == "pedestrian":
+        return _try(placer, lambda: _sidewalk_pose(placer, name))
+    if name in MOTION:
+        return _try(placer, lambda: _vehicle_pose(placer, name))
+    return _try(placer, lambda: _kerb_pose(placer, name))
 
 
 def _try(placer: Placer, draw, palette: tuple | None = None) -> bool:  # noqa: ANN001
