@@ -11,7 +11,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibrators._checks import check_choice
+from calibrators.checks import check_choice
 from calibrators.covariance import layer_spread
 from calibrators.dump import BOX_FIELDS, Dump
 from calibrators.matching import MatchResult, match

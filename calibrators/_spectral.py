@@ -84,14 +84,14 @@ def _zero_tiny(eig: np.ndarray) -> np.ndarray:
 
 
 def _check_symmetric(gap: np.ndarray, scale: np.ndarray, tol: float = 1e-9) -> None:
-    """The symmetry test of `_checks.check_covariances` on `max |Σ - Σᵀ|` per matrix."""
+    """The symmetry test of `checks.check_covariances` on `max |Σ - Σᵀ|` per matrix."""
     asym = gap > tol * scale
     if asym.any():
         raise ValueError(f"covariances[{int(np.argmax(asym))}] is not symmetric")
 
 
 def _check_psd(eig_min: np.ndarray, scale: np.ndarray, tol: float = 1e-9) -> None:
-    """The PSD test of `_checks.check_covariances` on the smallest eigenvalues `[N]`."""
+    """The PSD test of `checks.check_covariances` on the smallest eigenvalues `[N]`."""
     bad = eig_min < -tol * scale
     if bad.any():
         i = int(np.argmax(bad))

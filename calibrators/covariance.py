@@ -13,7 +13,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibrators._checks import as_float_array
+from calibrators.checks import as_float_array
 from calibrators.dump import BOX_FIELDS as BOX_DIMS
 
 DIM_INDEX = {name: i for i, name in enumerate(BOX_DIMS)}

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from calibrators._checks import as_float_array, check_covariances, check_length
 from calibrators._spectral import _spectral, _spectral_2x2
+from calibrators.checks import as_float_array, check_covariances, check_length
 from calibrators.exceptions import check_fitted
 
 _LOG_2PI = float(np.log(2.0 * np.pi))

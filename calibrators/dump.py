@@ -25,7 +25,7 @@ from functools import cached_property
 
 import numpy as np
 
-from calibrators._checks import (
+from calibrators.checks import (
     as_float_array,
     as_int_array,
     check_choice,

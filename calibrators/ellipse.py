@@ -13,7 +13,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from calibrators._checks import as_float_array, check_covariances
+from calibrators.checks import as_float_array, check_covariances
 
 
 class Ellipse(NamedTuple):

@@ -22,7 +22,7 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from calibrators._ap import calc_ap, calc_tp, pr_curve, scale_iou, yaw_diff
-from calibrators._checks import as_float_array, check_length
+from calibrators.checks import as_float_array, check_length
 from calibrators.dump import Dump
 from calibrators.matching import (
     DEFAULT_CLASS_RANGE,

@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from calibrators._checks import as_float_array, as_int_array, check_length
+from calibrators.checks import as_float_array, as_int_array, check_length
 
 # nuScenes `detection_cvpr_2019` class ranges in metres (BEV distance from the ego).
 DEFAULT_CLASS_RANGE: Mapping[str, float] = {

@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 from scipy.special import expit, logit
 
-from calibrators._checks import (
+from calibrators.checks import (
     as_float_array,
     as_int_array,
     check_covariances,

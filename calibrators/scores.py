@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit, log_softmax
 
-from calibrators._checks import as_float_array, check_choice
+from calibrators.checks import as_float_array, check_choice
 
 SCORE_MODES = ("sigmoid", "softmax")
 

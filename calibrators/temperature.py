@@ -31,7 +31,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 from scipy.special import expit
 
-from calibrators._checks import (
+from calibrators.checks import (
     as_float_array,
     as_int_array,
     check_choice,

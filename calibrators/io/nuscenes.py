@@ -18,7 +18,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy.special import logit
 
-from calibrators._checks import (
+from calibrators.checks import (
     as_float_array,
     check_choice,
     check_length,

@@ -8,7 +8,7 @@ from typing import Any
 
 import numpy as np
 
-from calibrators._checks import as_float_array, check_length, check_probabilities
+from calibrators.checks import as_float_array, check_length, check_probabilities
 
 
 def check_n_bins(name: str, value: object, minimum: int = 1) -> int:

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from calibrators._checks import as_float_array, check_length
+from calibrators.checks import as_float_array, check_length
 from calibrators.metrics._common import ResultMixin, check_n_bins, check_nonempty
 
 

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibrators._checks import as_float_array, check_length
+from calibrators.checks import as_float_array, check_length
 from calibrators.metrics._common import bin_index, check_n_bins, confidences_and_correct
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from calibrators._checks import as_float_array, check_covariances
+from calibrators.checks import as_float_array, check_covariances
 from calibrators.metrics._common import ResultMixin, check_nonempty
 
 

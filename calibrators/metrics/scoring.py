@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibrators._checks import (
+from calibrators.checks import (
     as_float_array,
     as_int_array,
     check_index,

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import log_expit, log_softmax
 
-from calibrators._checks import as_float_array, as_int_array, check_choice, check_length
+from calibrators.checks import as_float_array, as_int_array, check_choice, check_length
 from calibrators.covariance import DIM_INDEX, dim_indices
 from calibrators.scores import SCORE_MODES
 from detectors.baselines.bev_iou import check_boxes

@@ -1,0 +1,69 @@
+"""The library's vocabulary, defined once: box fields, covariance sources, score modes,
+angle wrapping, quaternion yaw, JSON-safe values and the installed version.
+
+Every other module (and `detectors/`, `app/`) imports these names instead of spelling them
+again.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+#: The 9 fields of a box row `[.., 9]`, in column order (nuScenes convention, z = centre).
+BOX_FIELDS: tuple[str, ...] = ("x", "y", "z", "w", "l", "h", "yaw", "vx", "vy")
+#: Column of each box field.
+BOX_INDEX: dict[str, int] = {name: i for i, name in enumerate(BOX_FIELDS)}
+#: Where a profile's raw covariance Σ comes from: the detection's own `covariance` (`given`),
+#: the spread of its box across decoder layers (`layers`), or nowhere (`none`, Σ = 0).
+COV_SOURCES: tuple[str, ...] = ("given", "layers", "none")
+#: What a fit accepts for `cov_source`: a source, or `auto` (resolved from the dump).
+COV_SOURCE_CHOICES: tuple[str, ...] = ("auto", *COV_SOURCES)
+#: `sigmoid`: C independent class logits; `softmax`: C + 1 columns, the last is no-object.
+SCORE_MODES: tuple[str, ...] = ("sigmoid", "softmax")
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
+    """Angles (rad) wrapped to (-pi, pi], elementwise."""
+    return np.pi - np.mod(np.pi - np.asarray(angle, dtype=np.float64), 2.0 * np.pi)
+
+
+def quaternion_yaw(w: float, x: float, y: float, z: float) -> float:
+    """Yaw about +z of the rotation quaternion (w, x, y, z), as the nuScenes devkit's
+    `quaternion_yaw`; a non-unit quaternion gives the yaw of its normalised rotation.
+
+    Raises ValueError for the zero quaternion (no rotation is defined).
+    """
+    if w * w + x * x + y * y + z * z == 0:
+        raise ValueError("rotation is the zero quaternion")
+    return float(math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z))
+
+
+def to_jsonable(value: Any) -> Any:
+    """`value` in plain JSON types: numpy scalars and arrays to Python numbers and lists,
+    tuples to lists, dict keys to strings, and non-finite floats to None (strict JSON)."""
+    if isinstance(value, dict):
+        return {str(k): to_jsonable(v) for k, v in value.items()}
+    if isinstance(value, np.ndarray):
+        return to_jsonable(value.tolist())
+    if isinstance(value, list | tuple):
+        return [to_jsonable(v) for v in value]
+    if isinstance(value, bool | np.bool_):
+        return bool(value)
+    if isinstance(value, float | np.floating):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
+def detcal_version() -> str:
+    """The installed detcal distribution's version, `"unknown"` when run from a bare tree."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("detcal")
+    except PackageNotFoundError:
+        return "unknown"
