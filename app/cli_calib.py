@@ -17,8 +17,7 @@ from typing import Any
 import numpy as np
 
 from app.cli import CliError
-
-COV_SOURCES = ("auto", "given", "layers", "none")
+from calibrators.options import FitOptions
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -30,19 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     _add_input(fit)
     fit.add_argument("--out", default="profile.json", help="profile JSON to write "
                      "(default: %(default)s)")
-    fit.add_argument("--threshold", type=float, default=2.0,
-                     help="matching distance in m (default: %(default)s)")
-    fit.add_argument("--dims", default="x,y", help="regression dims (default: %(default)s)")
-    fit.add_argument("--holdout", type=float, default=0.0,
-                     help="fraction of frames held out for the report (default: %(default)s)")
-    fit.add_argument("--cov-source", choices=COV_SOURCES, default="auto",
-                     help="raw covariance: det_cov, spread across layers, or none "
-                          "(default: %(default)s)")
-    fit.add_argument("--min-score", type=float, default=None,
-                     help="only detections with a raw score >= this take part (default: all)")
-    fit.add_argument("--min-samples", type=int, default=50,
-                     help="matches a class needs for its own k (default: %(default)s)")
-    fit.add_argument("--seed", type=int, default=0, help="hold-out split seed")
+    add_fit_options(fit)
     fit.add_argument("--quiet", action="store_true", help="no progress on stderr")
     fit.set_defaults(func=run_fit)
 
@@ -70,6 +57,26 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cal.set_defaults(func=run_calibrate)
 
 
+def add_fit_options(parser: argparse.ArgumentParser) -> None:
+    """One flag per `FitOptions` field (`--min-score` for `min_score`), with its type, default,
+    choices and help: the same options, names and defaults as POST /v1/fit's form."""
+    for spec in FitOptions.describe():
+        flag = "--" + spec.name.replace("_", "-")
+        if spec.type is bool:
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction,
+                                default=spec.default, help=spec.help)
+            continue
+        text = spec.help if spec.default is None else f"{spec.help} (default: %(default)s)"
+        parser.add_argument(flag, type=spec.type, default=spec.default, choices=spec.choices,
+                            help=text)
+
+
+def fit_options_of(args: argparse.Namespace) -> FitOptions:
+    """The `FitOptions` of parsed `add_fit_options` flags (ValueError naming a bad one)."""
+    return FitOptions.from_dict({spec.name: getattr(args, spec.name)
+                                 for spec in FitOptions.describe()})
+
+
 def _add_input(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("dump", metavar="DUMP",
                         help="validation dump (.npz), or a nuScenes results JSON with "
@@ -81,17 +88,14 @@ def _add_input(parser: argparse.ArgumentParser) -> None:
 # -- handlers --------------------------------------------------------------------------------
 def run_fit(args: argparse.Namespace) -> int:
     """`detcal fit`: fit, print the table, write the profile."""
-    from calibrators.fit import fit_profile
-    from calibrators.report import format_table
+    from calibrators import ProfileReport, fit_profile, format_table
 
+    options = fit_options_of(args)
     dump, sha = load_input(args.dump, args.nuscenes_gt)
     progress = None if args.quiet else _progress
-    profile = fit_profile(dump, threshold=args.threshold, dims=args.dims,
-                          cov_source=args.cov_source, holdout=args.holdout,
-                          min_score=args.min_score, min_samples=args.min_samples,
-                          seed=args.seed, dump_sha256=sha, progress=progress)
+    profile = fit_profile(dump, options, dump_sha256=sha, progress=progress)
     _write_text(args.out, profile.to_json())
-    print(format_table(profile.report))
+    print(format_table(ProfileReport.from_dict(profile.report)))
     print(f"wrote {args.out}: T = {profile.temperature:.4g}, pooled k = {profile.pooled_k:.4g}, "
           f"cov_source {profile.cov_source}", file=sys.stderr)
     return 0
@@ -99,26 +103,25 @@ def run_fit(args: argparse.Namespace) -> int:
 
 def run_evaluate(args: argparse.Namespace) -> int:
     """`detcal evaluate`: mAP, per-class AP and calibration metrics."""
-    from calibrators.evaluate import evaluate
-    from calibrators.report import calibration_report, format_table
+    from calibrators import apply_profile, evaluate, format_table, summarize
 
     dump, _ = load_input(args.dump, args.nuscenes_gt)
     profile = load_profile(args.profile) if args.profile else None
-    report = calibration_report(dump, profile, threshold=args.threshold)
+    summary = summarize(dump, profile, threshold=args.threshold)
     ev = evaluate(dump)
     ev_after = None
     if profile is not None and dump.n_detections:
-        scores = _calibrated(dump, profile).scores
+        scores = apply_profile(dump, profile).scores
         ev_after = evaluate(dump, scores=scores)
     if args.json:
         doc = {"evaluation": ev.to_dict(),
                "evaluation_calibrated": None if ev_after is None else ev_after.to_dict(),
-               "calibration": report}
+               "calibration": summary.to_dict()}
         print(json.dumps(doc, allow_nan=False))
         return 0
     print(_ap_table(ev.to_dict(), None if ev_after is None else ev_after.to_dict()))
     print()
-    print(format_table(report))
+    print(format_table(summary))
     return 0
 
 
@@ -130,10 +133,11 @@ def run_calibrate(args: argparse.Namespace) -> int:
         doc = _calibrate_results_json(path, profile, args.nuscenes_gt)
         _write_text(args.out, json.dumps(doc, allow_nan=False))
         return 0
+    from calibrators import apply_profile
     from calibrators.io import save_nuscenes
 
     dump, _ = load_input(str(path), None)
-    out = _calibrated(dump, profile)
+    out = apply_profile(dump, profile)
     with tempfile.TemporaryDirectory() as tmp:
         results = Path(tmp) / "results.json"
         # Σ' is over the profile's dims, which need not be the dump's cov_dims.
@@ -152,6 +156,7 @@ def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None) -> di
     `--nuscenes-gt`, distances are measured from the boxes' `ego_translation` if they have
     one, else from the origin (ego-frame results).
     """
+    from calibrators import apply_profile
     from calibrators.io import calibrate_results_document, load_nuscenes
 
     try:
@@ -164,7 +169,7 @@ def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None) -> di
     gt = None if gt_path is None else str(_existing(gt_path))
     dump = load_nuscenes(str(path), gt, classes=profile.classes)
     if any("detection_logits" in box for box in boxes):
-        out = _calibrated(dump, profile)
+        out = apply_profile(dump, profile)
     else:
         out = profile.calibrate(
             scores=np.array([float(b["detection_score"]) for b in boxes]),
@@ -206,19 +211,6 @@ def load_profile(path: str) -> Any:
         raise CliError(f"{path} is not a valid profile: {exc}") from None
 
 
-def _calibrated(dump: Any, profile: Any) -> Any:
-    """`profile.calibrate` on the dump's final-layer detections."""
-    if tuple(profile.classes) != tuple(dump.classes) or profile.score_mode != dump.score_mode:
-        raise CliError(f"profile is for {profile.score_mode} classes {list(profile.classes)} but "
-                       f"the dump has {dump.score_mode} classes {list(dump.classes)}")
-    return profile.calibrate(
-        logits=dump.det_logits[:, -1], boxes=dump.final_boxes,
-        layer_logits=dump.det_logits if profile.modulation else None,
-        covariances=dump.det_cov if profile.cov_source == "given" else None,
-        layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
-        ego_xy=dump.ego_xy(dump.det_frame))
-
-
 def _existing(path: str) -> Path:
     p = Path(path)
     if not p.is_file():
@@ -231,7 +223,7 @@ def _write_text(path: str, text: str) -> None:
     if path == "-":
         sys.stdout.write(text + "\n")
         return
-    from calibrators.io._atomic import atomic_write
+    from calibrators.io import atomic_write
 
     with atomic_write(path, "w") as fh:
         fh.write(text + "\n")

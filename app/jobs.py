@@ -17,11 +17,9 @@ from typing import Any
 
 from app.store import JobRecord, Store
 from calibrators.fit import fit_profile
+from calibrators.options import FitOptions
 
 log = logging.getLogger("detcal.jobs")
-
-FIT_OPTIONS = ("threshold", "dims", "cov_source", "holdout", "min_score", "min_samples", "seed",
-               "modulation")
 
 
 def load_job_dump(store: Store, job: JobRecord) -> Any:
@@ -127,11 +125,8 @@ class JobRunner:
         try:
             dump = load_job_dump(self.store, job)
             progress("fitting", 0.0)
-            options = {k: v for k, v in job.options.items() if k in FIT_OPTIONS}
-            if "dims" in options:
-                options["dims"] = tuple(options["dims"])
-            profile = fit_profile(dump, dump_sha256=job.dump_sha256, progress=progress,
-                                  **options)
+            profile = fit_profile(dump, FitOptions.from_dict(job.options),
+                                  dump_sha256=job.dump_sha256, progress=progress)
             record = self.store.complete_job(job.id, profile.to_json())
             log.info("fit job %s: %s landed in %.1f s", job.id, record.ref,
                      time.monotonic() - started)

@@ -14,19 +14,18 @@ from collections.abc import Sequence
 import numpy as np
 
 from calibrators.checks import as_float_array
-from calibrators.dump import BOX_FIELDS as BOX_DIMS
-
-DIM_INDEX = {name: i for i, name in enumerate(BOX_DIMS)}
+from calibrators.vocab import BOX_FIELDS, BOX_INDEX, check_dims, wrap_angle
 
 
 def layer_spread(layer_boxes: np.ndarray, dims: Sequence[str] = ("x", "y")) -> np.ndarray:
     """Sample covariance (ddof=1) `[N, D, D]` of each query's box `[N, L, 9]` across layers.
 
-    `dims` names the `D` box fields (keys of `DIM_INDEX`), in the covariance's order.
+    `dims` names the `D` box fields (`calibrators.vocab.BOX_FIELDS`), in the covariance's
+    order.
     """
     idx = dim_indices(dims)
     boxes = as_float_array("layer_boxes", layer_boxes, ndim=3)
-    if boxes.shape[2] != len(BOX_DIMS):
+    if boxes.shape[2] != len(BOX_FIELDS):
         raise ValueError(f"layer_boxes must have shape [N, L, 9], got {boxes.shape}")
     n_layers = boxes.shape[1]
     if n_layers < 2:
@@ -35,26 +34,11 @@ def layer_spread(layer_boxes: np.ndarray, dims: Sequence[str] = ("x", "y")) -> n
     values = boxes[:, :, idx]
     for j, name in enumerate(dims):
         if name == "yaw":
-            values[:, :, j] = _wrap(values[:, :, j] - values[:, -1:, j])
+            values[:, :, j] = wrap_angle(values[:, :, j] - values[:, -1:, j])
     centred = values - values.mean(axis=1, keepdims=True)
     return np.einsum("nli,nlj->nij", centred, centred) / (n_layers - 1)
 
 
 def dim_indices(dims: Sequence[str]) -> list[int]:
     """Column of each name of `dims` in a 9-field box; distinct known names are required."""
-    if isinstance(dims, str):
-        raise ValueError(f"dims must be a sequence of box field names, not the string {dims!r}")
-    names = list(dims)
-    if not names:
-        raise ValueError("dims must name at least one box field")
-    for name in names:
-        if name not in DIM_INDEX:
-            raise ValueError(f"dims has unknown box field {name!r}; known: {list(BOX_DIMS)}")
-    if len(set(names)) != len(names):
-        raise ValueError(f"dims has duplicate names: {names}")
-    return [DIM_INDEX[name] for name in names]
-
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    """Angles wrapped to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - angle, 2.0 * np.pi)
+    return [BOX_INDEX[name] for name in check_dims(dims)]

@@ -33,9 +33,8 @@ from calibrators.checks import (
     check_index,
     check_length,
 )
-from calibrators.scores import SCORE_MODES, predict
-
-BOX_FIELDS = ("x", "y", "z", "w", "l", "h", "yaw", "vx", "vy")
+from calibrators.scores import predict
+from calibrators.vocab import BOX_FIELDS, SCORE_MODES
 
 
 @dataclass(frozen=True, eq=False)

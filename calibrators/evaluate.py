@@ -33,6 +33,7 @@ from calibrators.matching import (
     greedy_match,
     in_range,
 )
+from calibrators.vocab import to_jsonable
 
 TP_METRICS = ("trans_err", "scale_err", "orient_err", "vel_err")
 # Errors the devkit does not score for a class (its NuScenesEval.evaluate).
@@ -67,7 +68,7 @@ class EvaluationReport:
 
     def to_dict(self) -> dict:
         """A JSON-safe dict (NaN -> None)."""
-        return _json_safe(asdict(self))
+        return to_jsonable(asdict(self))
 
     def to_json(self, indent: int | None = 2) -> str:
         """The report as strict JSON (no NaN)."""
@@ -190,13 +191,3 @@ def _nanmean(values: list[float]) -> float:
     return float(np.mean(arr[~np.isnan(arr)])) if (~np.isnan(arr)).any() else float("nan")
 
 
-def _json_safe(value: object) -> object:
-    if isinstance(value, dict):
-        return {str(k): _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, float | np.floating):
-        return None if not np.isfinite(value) else float(value)
-    if isinstance(value, np.integer):
-        return int(value)
-    return value

@@ -8,7 +8,7 @@
    No class range filter is applied: the nuScenes ranges (30-50 m) are an evaluation
    convention, while a profile must calibrate every detection the detector emits, and the far
    detections carry most of the depth signal. Filter the dump beforehand to fit on a range;
-4. temperature scaling on the final-layer logits with TP labels (`_fitdata.ts_labels`:
+4. temperature scaling on the final-layer logits with TP labels (`matched.ts_labels`:
    sigmoid 0/1 of the predicted class; softmax target column = matched class or no-object);
    with `modulation=True` the final-layer logits are first modulated from all decoder layers
    (Eq. 4-1, `calibrators.modulation`) and T is fit on the modulated logits. Matching and
@@ -16,19 +16,23 @@
 5. residuals (matched ground truth − final box) of the TPs over `dims` (yaw wrapped) and the
    raw covariance from `cov_source` (`given` det_cov, `layers` spread across decoder layers,
    `none`), then `DepthScaler` per predicted class with BEV distance from the ego;
-6. the before/after report (`calibrators.report`) on the fit part and the held-out part.
+6. the before/after summary (`calibrators.summary`) on the fit part and the held-out part.
+
+Every option is a field of `FitOptions` (calibrators/options.py), validated there once.
 """
 
 from __future__ import annotations
 
 import hashlib
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import replace
+from typing import Any
 
 import numpy as np
 
-from calibrators._fitdata import (
-    check_dims,
+from calibrators.depth import DepthScaler
+from calibrators.dump import Dump
+from calibrators.matched import (
     match_dump,
     raw_covariances,
     resolve_cov_source,
@@ -38,43 +42,39 @@ from calibrators._fitdata import (
     ts_labels,
     ts_logits,
 )
-from calibrators.depth import DepthScaler
-from calibrators.dump import Dump
+from calibrators.matching import MatchResult
+from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibrationProfile, make_provenance
-from calibrators.report import calibration_report
+from calibrators.summary import summarize
+from calibrators.summary_types import ProfileReport
 from calibrators.temperature import TemperatureScaler
 
 Progress = Callable[[str, float], None]
 
 
-def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = ("x", "y"),
-                cov_source: str = "auto", holdout: float = 0.0, min_score: float | None = None,
-                min_samples: int = 50, seed: int = 0, dump_sha256: str | None = None,
-                progress: Progress | None = None, modulation: bool = False
-                ) -> CalibrationProfile:
+def fit_profile(dump: Dump, options: FitOptions | None = None, *,
+                dump_sha256: str | None = None, progress: Progress | None = None,
+                **overrides: Any) -> CalibrationProfile:
     """Fit temperature and per-class depth k on `dump`; see the module docstring.
 
-    threshold: matching distance in m (> 0). dims: regression box fields (`("x", "y")` or
-    `"x,y"`). cov_source: `auto` | `given` | `layers` | `none` (`auto`: given if the dump has
-    det_cov over `dims`, else layers if L >= 2, else none). holdout: fraction of frames in
-    [0, 1) kept for the report. min_score: drop detections with a raw score below it (None:
-    all queries). min_samples: matches a class needs for its own k (else the pooled k).
-    dump_sha256: the dump file's hash for provenance (None: a hash of the arrays).
-    modulation: apply logits modulation before temperature scaling (needs L >= 2 layers);
-    recorded in the profile, whose `calibrate` then needs `layer_logits`.
-    progress: called as `progress(stage, fraction)` once the options are valid, with stages
-    prepare, match, temperature, depth, report, holdout report (if any), done and fractions
-    rising from 0 to 1.
-    Raises ValueError naming the option for bad options or a dump that cannot be fit.
+    options: a `FitOptions` (default: all defaults); keyword `overrides` replace single
+    options, e.g. `fit_profile(dump, holdout=0.3)`. dump_sha256: the dump file's hash for
+    provenance (None: a hash of the arrays). progress: called as `progress(stage, fraction)`
+    once the options are valid, with stages prepare, match, temperature, depth, report,
+    holdout report (if any), done and fractions rising from 0 to 1.
+    Raises ValueError naming the option (an `OptionError`) for bad options, or a ValueError
+    for a dump that cannot be fit.
     """
+    opts = options if options is not None else FitOptions()
+    if not isinstance(opts, FitOptions):
+        raise OptionError("options", f"options must be a FitOptions, got {type(opts).__name__}")
+    if overrides:
+        opts = FitOptions.from_dict({**opts.to_dict(), **overrides})
     report_progress = progress if progress is not None else _no_progress
-    threshold = _check_threshold(threshold)
-    dims = check_dims(dims)
-    holdout = _check_holdout(holdout)
-    min_score = _check_min_score(min_score)
-    min_samples = _check_min_samples(min_samples)
-    modulation = _check_modulation(modulation, dump)
-    source = resolve_cov_source(dump, cov_source, dims)
+    threshold, dims, holdout = opts.threshold, opts.dims, opts.holdout
+    min_score, min_samples, seed = opts.min_score, opts.min_samples, opts.seed
+    source = check_fit_input(dump, opts)
+    modulation = opts.modulation
     report_progress("prepare", 0.0)
     if dump_sha256 is None:
         dump_sha256 = dump_digest(dump)
@@ -95,7 +95,7 @@ def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = 
     scaler.fit(ts_logits(fit_part, modulation), ts_labels(fit_part, matched.tp))
 
     report_progress("depth", 0.4)
-    depth = _fit_depth(fit_part, matched.gt_index, matched.tp, dims, source, min_samples)
+    depth = _fit_depth(fit_part, matched, dims, source, min_samples)
     fallbacks = [c for c in fit_part.classes if c not in depth.k_ or c in
                  {str(f) for f in depth.fallback_classes_}]
     profile = CalibrationProfile(
@@ -111,15 +111,27 @@ def fit_profile(dump: Dump, threshold: float = 2.0, dims: str | Sequence[str] = 
     )
 
     report_progress("report", 0.6)
-    fit_report = calibration_report(fit_part, profile, threshold=threshold, match=matched)
-    held_report = None
+    fit_summary = summarize(fit_part, profile, threshold=threshold, match=matched)
+    held_summary = None
     if held_part is not None:
         report_progress("holdout report", 0.8)
-        held_report = calibration_report(held_part, profile, threshold=threshold)
-    profile = replace(profile, report={"fit": fit_report, "holdout": held_report,
-                                       "min_score": min_score, "threshold": threshold})
+        held_summary = summarize(held_part, profile, threshold=threshold)
+    report = ProfileReport(fit=fit_summary, holdout=held_summary, min_score=min_score,
+                           threshold=threshold)
+    profile = replace(profile, report=report.to_dict())
     report_progress("done", 1.0)
     return profile
+
+
+def check_fit_input(dump: Dump, options: FitOptions) -> str:
+    """Raise `OptionError` naming the option if `dump` cannot be fit with `options` (logits
+    modulation without 2 decoder layers, a covariance source the dump lacks); returns the
+    resolved covariance source. Front ends call it to refuse an upload before queueing a fit.
+    """
+    if options.modulation and dump.n_layers < 2:
+        raise OptionError("modulation", f"modulation=True needs the logits of at least 2 "
+                                        f"decoder layers, the dump has {dump.n_layers}")
+    return resolve_cov_source(dump, options.cov_source, options.dims)
 
 
 def dump_digest(dump: Dump) -> str:
@@ -137,10 +149,11 @@ def dump_digest(dump: Dump) -> str:
     return h.hexdigest()
 
 
-def _fit_depth(dump: Dump, gt_index: np.ndarray, tp: np.ndarray, dims: tuple[str, ...],
-               source: str, min_samples: int) -> DepthScaler:
+def _fit_depth(dump: Dump, matched: MatchResult, dims: tuple[str, ...], source: str,
+               min_samples: int) -> DepthScaler:
     """DepthScaler fit on the TPs' residuals `[M, D]`, raw covariance, distance and class."""
-    residuals = tp_residuals(dump, gt_index, tp, dims)
+    tp = matched.tp
+    residuals = tp_residuals(dump, matched, dims)
     cov = raw_covariances(dump, source, dims)
     classes = np.asarray(dump.classes)[dump.det_labels[tp]]
     try:
@@ -164,44 +177,6 @@ def _provenance(dump: Dump, fit_part: Dump, held_part: Dump | None, tp: np.ndarr
         holdout=holdout,
         seed=int(seed),
     )
-
-
-def _check_threshold(threshold: float) -> float:
-    t = float(threshold)
-    if not np.isfinite(t) or t <= 0:
-        raise ValueError(f"threshold must be a finite distance > 0 m, got {threshold}")
-    return t
-
-
-def _check_holdout(holdout: float) -> float:
-    h = float(holdout)
-    if not (0.0 <= h < 1.0):
-        raise ValueError(f"holdout must be a fraction of frames in [0, 1), got {holdout}")
-    return h
-
-
-def _check_min_score(min_score: float | None) -> float | None:
-    if min_score is None:
-        return None
-    s = float(min_score)
-    if not (0.0 <= s <= 1.0):
-        raise ValueError(f"min_score must be a probability in [0, 1], got {min_score}")
-    return s
-
-
-def _check_min_samples(min_samples: int) -> int:
-    if isinstance(min_samples, bool) or int(min_samples) != min_samples or min_samples < 1:
-        raise ValueError(f"min_samples must be an integer >= 1, got {min_samples}")
-    return int(min_samples)
-
-
-def _check_modulation(modulation: bool, dump: Dump) -> bool:
-    if not isinstance(modulation, bool | np.bool_):
-        raise ValueError(f"modulation must be True or False, got {modulation!r}")
-    if modulation and dump.n_layers < 2:
-        raise ValueError(f"modulation=True needs the logits of at least 2 decoder layers, the "
-                         f"dump has {dump.n_layers}")
-    return bool(modulation)
 
 
 def _no_progress(stage: str, fraction: float) -> None:

@@ -32,10 +32,10 @@ from calibrators.covariance import dim_indices, layer_spread
 from calibrators.depth import add_depth_term
 from calibrators.ellipse import Ellipse, ellipse
 from calibrators.modulation import modulate_logits
-from calibrators.scores import SCORE_MODES, class_probabilities, predict
+from calibrators.scores import class_probabilities, predict
+from calibrators.vocab import COV_SOURCES, SCORE_MODES, detcal_version
 
 SCHEMA_VERSION = 1
-COV_SOURCES = ("given", "layers", "none")
 MATCHING_RULES = ("center_distance",)
 
 
@@ -290,14 +290,8 @@ class CalibratedDetections:
 
 def make_provenance(**counts: Any) -> dict[str, Any]:
     """Provenance dict: the given entries plus `created_at` (ISO-8601 UTC) and detcal version."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        detcal_version = version("detcal")
-    except PackageNotFoundError:
-        detcal_version = "unknown"
     created = datetime.now(UTC).isoformat(timespec="seconds").replace("+00:00", "Z")
-    return {**counts, "created_at": created, "detcal_version": detcal_version}
+    return {**counts, "created_at": created, "detcal_version": detcal_version()}
 
 
 # -- validation helpers -----------------------------------------------------------------------

@@ -13,8 +13,7 @@ import numpy as np
 from scipy.special import expit, log_softmax
 
 from calibrators.checks import as_float_array, check_choice
-
-SCORE_MODES = ("sigmoid", "softmax")
+from calibrators.vocab import SCORE_MODES
 
 
 def class_probabilities(logits: np.ndarray, mode: str, temperature: float = 1.0) -> np.ndarray:

@@ -26,7 +26,8 @@ from collections.abc import Mapping, Sequence
 import numpy as np
 
 from calibrators.dump import Dump
-from calibrators.scores import SCORE_MODES, class_probabilities
+from calibrators.scores import class_probabilities
+from calibrators.vocab import SCORE_MODES, wrap_angle
 
 CLASSES10 = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
              "motorcycle", "bicycle", "traffic_cone", "barrier")
@@ -218,7 +219,7 @@ def _true_positive_boxes(rng: np.random.Generator, gt: np.ndarray, k: np.ndarray
     boxes[:, :2] += noise
     boxes[:, 2] += rng.normal(0.0, 0.1, len(gt))
     boxes[:, 3:6] *= rng.normal(1.0, 0.05, (len(gt), 3))
-    boxes[:, 6] = _wrap(boxes[:, 6] + rng.normal(0.0, 0.1, len(gt)))
+    boxes[:, 6] = wrap_angle(boxes[:, 6] + rng.normal(0.0, 0.1, len(gt)))
     boxes[:, 7:9] += rng.normal(0.0, 0.3, (len(gt), 2))
     return boxes, cov
 
@@ -275,11 +276,6 @@ def _layer_boxes(rng: np.random.Generator, final: np.ndarray, k: np.ndarray, n_l
         noise[:, :2] *= xy_std[:, None]
         noise[:, 3:6] *= final[:, 3:6]
         out[:, layer] = final + scale * noise
-    out[:, :, 6] = _wrap(out[:, :, 6])
+    out[:, :, 6] = wrap_angle(out[:, :, 6])
     out[:, -1] = final
     return out
-
-
-def _wrap(angle: np.ndarray) -> np.ndarray:
-    """Angles wrapped to (-pi, pi]."""
-    return np.pi - np.mod(np.pi - angle, 2.0 * np.pi)

@@ -39,7 +39,8 @@ from calibrators.checks import (
     check_length,
 )
 from calibrators.exceptions import check_fitted
-from calibrators.scores import SCORE_MODES, class_probabilities
+from calibrators.scores import class_probabilities
+from calibrators.vocab import SCORE_MODES
 
 Objective = Callable[[float], float]
 

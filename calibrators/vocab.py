@@ -8,6 +8,7 @@ again.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
@@ -23,6 +24,27 @@ COV_SOURCES: tuple[str, ...] = ("given", "layers", "none")
 COV_SOURCE_CHOICES: tuple[str, ...] = ("auto", *COV_SOURCES)
 #: `sigmoid`: C independent class logits; `softmax`: C + 1 columns, the last is no-object.
 SCORE_MODES: tuple[str, ...] = ("sigmoid", "softmax")
+
+
+def check_dims(dims: str | Sequence[str]) -> tuple[str, ...]:
+    """Regression dims as a tuple of distinct box fields; `"x,y"` is accepted for `("x", "y")`.
+
+    Raises ValueError naming `dims` for an empty, unknown or repeated field.
+    """
+    if isinstance(dims, str):
+        dims = [d.strip() for d in dims.split(",") if d.strip()]
+    try:
+        out = tuple(str(d) for d in dims)
+    except TypeError:
+        raise ValueError(f"dims must be a list of box fields, got {type(dims).__name__}") from None
+    if not out:
+        raise ValueError("dims must name at least one box field")
+    for d in out:
+        if d not in BOX_INDEX:
+            raise ValueError(f"dims has unknown box field {d!r}; known: {list(BOX_FIELDS)}")
+    if len(set(out)) != len(out):
+        raise ValueError(f"dims has duplicate names: {list(out)}")
+    return out
 
 
 def wrap_angle(angle: np.ndarray | float) -> np.ndarray:

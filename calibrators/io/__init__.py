@@ -4,12 +4,13 @@
 - `load_nuscenes` / `save_nuscenes`: a nuScenes results JSON plus (optionally) a ground-truth
   JSON in `DetectionBox` form; `calibrate_results_document` writes calibrated scores and
   covariances into an existing results document, keeping all its other fields.
-- `file_sha256`: content hash for provenance.
+- `file_sha256`: content hash for provenance; `atomic_write`: a file replaced in one rename.
 """
 
+from calibrators.io.atomic import atomic_write
 from calibrators.io.hashing import file_sha256
 from calibrators.io.npz import load_dump, save_dump
 from calibrators.io.nuscenes import calibrate_results_document, load_nuscenes, save_nuscenes
 
-__all__ = ["calibrate_results_document", "file_sha256", "load_dump", "load_nuscenes", "save_dump",
-           "save_nuscenes"]
+__all__ = ["atomic_write", "calibrate_results_document", "file_sha256", "load_dump",
+           "load_nuscenes", "save_dump", "save_nuscenes"]

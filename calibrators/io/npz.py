@@ -14,7 +14,7 @@ from typing import BinaryIO
 import numpy as np
 
 from calibrators.dump import Dump
-from calibrators.io._atomic import atomic_write
+from calibrators.io.atomic import atomic_write
 
 REQUIRED_KEYS = ("classes", "score_mode", "frame_ids", "det_frame", "det_logits", "det_boxes",
                  "gt_frame", "gt_labels", "gt_boxes")

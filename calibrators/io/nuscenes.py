@@ -24,8 +24,9 @@ from calibrators.checks import (
     check_length,
     check_probabilities,
 )
-from calibrators.dump import BOX_FIELDS, Dump
-from calibrators.io._atomic import atomic_write
+from calibrators.dump import Dump
+from calibrators.io.atomic import atomic_write
+from calibrators.vocab import BOX_FIELDS, quaternion_yaw
 
 NUSCENES_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
                     "motorcycle", "bicycle", "traffic_cone", "barrier")
@@ -242,10 +243,10 @@ def _vector(box: dict, key: str, n: int, where: str) -> np.ndarray:
 
 def _yaw(q: np.ndarray, where: str) -> float:
     """Yaw about +z of quaternion (w, x, y, z), as the devkit's quaternion_yaw."""
-    w, x, y, z = q
-    if w * w + x * x + y * y + z * z == 0:
-        raise ValueError(f"{where}.rotation is the zero quaternion")
-    return float(np.arctan2(2 * (w * z + x * y), w * w + x * x - y * y - z * z))
+    try:
+        return quaternion_yaw(*(float(v) for v in q))
+    except ValueError as exc:
+        raise ValueError(f"{where}.{exc}") from None
 
 
 def _ego(det: dict, ref: dict, tokens: list[str]) -> np.ndarray | None:

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from scipy import stats
+from scipy.special import gammaln
 
 from calibrators.checks import as_float_array, check_covariances
 from calibrators.metrics._common import ResultMixin, check_nonempty
@@ -71,6 +72,12 @@ def regression_nll(residuals: np.ndarray, covariances: np.ndarray) -> float:
     md2, logdet = _squared_mahalanobis(r, cov)
     d = r.shape[1]
     return float(np.mean(0.5 * (d * np.log(2.0 * np.pi) + logdet + md2)))
+
+
+def expected_mahalanobis(dim: int) -> float:
+    """E[MD] of a calibrated D-dim Gaussian: the χ_D mean sqrt(2)·Γ((D+1)/2)/Γ(D/2)
+    (sqrt(pi/2) = 1.2533 in 2-D)."""
+    return float(np.sqrt(2.0) * np.exp(gammaln((dim + 1) / 2.0) - gammaln(dim / 2.0)))
 
 
 def mahalanobis(residuals: np.ndarray, covariances: np.ndarray) -> np.ndarray:

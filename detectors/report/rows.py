@@ -28,17 +28,20 @@ import numpy as np
 from calibrators import (
     CalibrationProfile,
     Dump,
+    MatchResult,
+    apply_profile,
     evaluate,
     fit_profile,
     layer_spread,
-    match,
+    match_dump,
     metrics,
+    raw_covariances,
+    tp_residuals,
 )
-from calibrators.matching import MatchResult
 
 DIMS = ("x", "y")
 RADII = (1.0, 2.0, 3.0)
-EXPECTED_MD = float(np.sqrt(np.pi / 2.0))   # E[χ_2]: mean Mahalanobis distance in 2-D
+EXPECTED_MD = metrics.expected_mahalanobis(len(DIMS))   # E[χ_2] = 1.2533
 
 
 @dataclass(frozen=True)
@@ -85,17 +88,6 @@ class Profiles:
     best_name: str
 
 
-def match_test(dump: Dump) -> MatchResult:
-    """nuScenes matching of the dump's final-layer detections at 2 m (no range filter)."""
-    return match(dump.det_frame, dump.det_labels, dump.det_scores, dump.final_boxes[:, :2],
-                 dump.gt_frame, dump.gt_labels, dump.gt_boxes[:, :2], threshold=2.0)
-
-
-def tp_residuals(dump: Dump, m: MatchResult) -> np.ndarray:
-    """`[M, 2]` matched GT centre − final box centre of the TPs."""
-    return dump.gt_boxes[m.gt_index[m.tp], :2] - dump.final_boxes[m.tp, :2]
-
-
 def positive_definite(cov: np.ndarray) -> np.ndarray:
     """`[N]` bool: Σ `[N, D, D]` has a smallest eigenvalue > 1e-12 of its largest entry."""
     if len(cov) == 0:
@@ -108,11 +100,11 @@ def measure(name: str, dump: Dump, scores: np.ndarray, covariances: np.ndarray,
             forward_ms: float, post_ms: float = 0.0, m: MatchResult | None = None,
             note: str = "") -> Row:
     """Score a row (module docstring): `scores [N]`, `covariances [N, 2, 2]` of `dump`."""
-    m = match_test(dump) if m is None else m
+    m = match_dump(dump) if m is None else m
     tp = np.asarray(m.tp, dtype=bool)
     conf = np.clip(np.asarray(scores, dtype=np.float64), 0.0, 1.0)
     feats = dump.final_boxes[:, :2] - dump.ego_xy(dump.det_frame)
-    res = tp_residuals(dump, m)
+    res = tp_residuals(dump, m, DIMS)
     reg = _regression(res, np.asarray(covariances, dtype=np.float64)[tp])
     if reg.n_used < len(res):
         extra = f"Σ singular for {len(res) - reg.n_used} of {len(res)} TPs (left out)"
@@ -148,10 +140,10 @@ def _regression(res: np.ndarray, cov: np.ndarray) -> _Regression:
 def class_rows(dump: Dump, scores: np.ndarray, covariances: np.ndarray,
                m: MatchResult | None = None) -> list[ClassRow]:
     """Class-wise regression NLL / MD (PD TPs of the class) and class NLL / ECE."""
-    m = match_test(dump) if m is None else m
+    m = match_dump(dump) if m is None else m
     tp = np.asarray(m.tp, dtype=bool)
     conf = np.clip(np.asarray(scores, dtype=np.float64), 0.0, 1.0)
-    res, cov = tp_residuals(dump, m), np.asarray(covariances, dtype=np.float64)[tp]
+    res, cov = tp_residuals(dump, m, DIMS), np.asarray(covariances, dtype=np.float64)[tp]
     tp_labels = dump.det_labels[tp]
     out = []
     for c, name in enumerate(dump.classes):
@@ -200,19 +192,7 @@ def profile_row(name: str, test: Dump, profile: CalibrationProfile, forward_ms: 
     return measure(name, test, out.scores, cov, forward_ms, post_ms, m=m, note=note)
 
 
-def apply_profile(dump: Dump, profile: CalibrationProfile):  # -> CalibratedDetections
-    """`profile.calibrate` on every detection of `dump` (layer logits, its Σ source)."""
-    return profile.calibrate(
-        layer_logits=dump.det_logits, boxes=dump.final_boxes,
-        covariances=dump.det_cov if profile.cov_source == "given" else None,
-        layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
-        ego_xy=dump.ego_xy(dump.det_frame))
-
-
 def raw_covariance(dump: Dump, profile: CalibrationProfile) -> np.ndarray:
     """`[N, 2, 2]` Σ before depth scaling from the profile's source (zeros for "none")."""
-    if profile.cov_source == "given":
-        return dump.det_cov
-    if profile.cov_source == "layers":
-        return layer_spread(dump.det_boxes, DIMS)
-    return np.zeros((dump.n_detections, 2, 2))
+    cov = raw_covariances(dump, profile.cov_source, DIMS)
+    return np.zeros((dump.n_detections, 2, 2)) if cov is None else cov

@@ -15,22 +15,27 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrators import CalibratedDetections, Dump, fit_profile, layer_spread
-from calibrators.matching import MatchResult
+from calibrators import (
+    CalibratedDetections,
+    Dump,
+    MatchResult,
+    apply_profile,
+    fit_profile,
+    layer_spread,
+    match_dump,
+    tp_residuals,
+)
 from detectors.report import plots
 from detectors.report.attention import AttentionStats, attention_stats
 from detectors.report.dumps import merged_sampling_dump, vanilla_dump
 from detectors.report.rows import (
     ClassRow,
     Row,
-    apply_profile,
     class_rows,
     fit_profiles,
-    match_test,
     measure,
     profile_row,
     sampling_row,
-    tp_residuals,
     vanilla_row,
 )
 from detectors.report.runner import MethodSpec, Passes, Truth, run_split
@@ -159,7 +164,7 @@ def build_sensor(sensor: str, options: ReportOptions, log: Log = print) -> Senso
 def _rows(report: SensorReport, options: ReportOptions, val_dump: Dump, test_dump: Dump,
           test: dict[str, Passes], truth: Truth, classes: tuple[str, ...], log: Log) -> None:
     """Main table, class-wise tables and the calibration figures."""
-    m = match_test(test_dump)
+    m = match_dump(test_dump)
     vanilla_ms = test["vanilla"].forward_ms_per_frame()
     profiles = fit_profiles(val_dump)
     report.best_profile, report.temperature = profiles.best_name, profiles.best.temperature
@@ -230,7 +235,7 @@ def _figures(sensor: str, test_dump: Dump, m: MatchResult, raw_cov: np.ndarray,
                     max(merged, key=lambda k: int(k.split("=")[1])) if merged else None)
     if sampling is not None:
         sm = merged[sampling]
-        ms = match_test(sm)
+        ms = match_dump(sm)
         res[sampling], cov[sampling] = tp_residuals(sm, ms), sm.det_cov[ms.tp]
     res["Depth Scaling"], cov["Depth Scaling"] = res["Vanilla"], calibrated.covariances[tp]
     files += plots.calibration_curves(res, cov, Path(f"{stem}_calibration_xy"))
@@ -271,7 +276,7 @@ def _attention(report: SensorReport, val_dump: Dump, val: Passes, val_truth: Tru
         report.attention, options.out / "plots" / f"{report.sensor}_attention_spread")
     val_attn = vanilla_dump(val, val_truth, classes, attention_cov=True)
     test_attn = vanilla_dump(test, truth, classes, attention_cov=True)
-    m = match_test(test_dump)
+    m = match_dump(test_dump)
     ms = test.forward_ms_per_frame()
     by_name = {r.name.split(" (")[0]: r for r in report.rows}
     layers_raw, layers_ds = by_name["Vanilla"], by_name["Depth Scaling"]

@@ -3,7 +3,7 @@ import stat
 
 import pytest
 
-from calibrators.io._atomic import atomic_write
+from calibrators.io.atomic import atomic_write
 
 
 def test_success_replaces_with_normal_permissions(tmp_path):

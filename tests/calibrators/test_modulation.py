@@ -7,10 +7,10 @@ import json
 import numpy as np
 import pytest
 
+from calibrators import summarize
 from calibrators.fit import fit_profile
 from calibrators.modulation import modulate_logits
 from calibrators.profile import CalibrationProfile
-from calibrators.report import calibration_report
 from calibrators.scores import class_probabilities
 from calibrators.synthetic import synthetic_dump
 
@@ -148,14 +148,13 @@ def test_fit_profile_with_modulation(score_mode):
     # the report's "after" side is calibrate() on the dump's layer logits
     out = mod.calibrate(layer_logits=dump.det_logits, boxes=dump.final_boxes,
                         covariances=dump.det_cov)
-    again = calibration_report(dump, mod)
-    assert again["classification"]["ece"]["after"] == pytest.approx(
+    again = summarize(dump, mod)
+    assert again.classification["ece"].after == pytest.approx(
         _ece(out.scores, dump, mod))
 
 
 def _ece(scores, dump, profile):
-    from calibrators import metrics
-    from calibrators._fitdata import match_dump
+    from calibrators import match_dump, metrics
 
     tp = match_dump(dump, profile.matching["threshold"]).tp
     return metrics.expected_calibration_error(scores, tp)

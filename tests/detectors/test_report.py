@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from calibrators import layer_spread, metrics
-from calibrators.report import calibration_report
+from calibrators import layer_spread, match_dump, metrics, summarize
 from calibrators.synthetic import synthetic_dump
 from detectors.registry import weights_path
 from detectors.report.attention import attention_stats, binned, closest_gt_iou, spread
@@ -17,7 +16,6 @@ from detectors.report.dumps import merged_sampling_dump
 from detectors.report.rows import (
     EXPECTED_MD,
     fit_profiles,
-    match_test,
     measure,
     positive_definite,
     profile_row,
@@ -133,7 +131,7 @@ def val_test() -> tuple:
 def test_measure_agrees_with_the_calibration_report(val_test: tuple) -> None:
     _, test = val_test
     row = vanilla_row(test, forward_ms=10.0)
-    ref = calibration_report(test, cov_source="layers")
+    ref = summarize(test, cov_source="layers").to_dict()
     cls, reg = ref["classification"], ref["regression"]
     assert row.ece == pytest.approx(cls["ece"]["before"])
     assert row.dece == pytest.approx(cls["dece"]["before"])
@@ -148,7 +146,7 @@ def test_measure_agrees_with_the_calibration_report(val_test: tuple) -> None:
 def test_measure_leaves_out_singular_covariances(val_test: tuple) -> None:
     _, test = val_test
     cov = layer_spread(test.det_boxes, ("x", "y"))
-    m = match_test(test)
+    m = match_dump(test)
     tp_rows = np.flatnonzero(m.tp)
     cov[tp_rows[::2]] = np.array([[1.0, 1.0], [1.0, 1.0]])   # rank 1
     row = measure("half singular", test, test.det_scores, cov, 1.0, m=m)
@@ -166,7 +164,7 @@ def test_profile_rows_calibrate(val_test: tuple) -> None:
     profiles = fit_profiles(val)
     assert profiles.best_name in ("TS", "TS+Mod")
     assert profiles.mod.temperature == 1.0 and profiles.mod.modulation
-    m = match_test(test)
+    m = match_dump(test)
     van = vanilla_row(test, 10.0, m)
     ts = profile_row("TS", test, profiles.ts, 10.0, regression=False, m=m)
     ds = profile_row("DS", test, profiles.best, 10.0, regression=True, m=m)

@@ -1,7 +1,13 @@
-"""The arrays a fit and a report share: matching, TS labels, TP residuals, raw covariances.
+"""A dump matched to its ground truth, and the arrays that follow: the public dump-level API.
 
-All functions take a validated `Dump` (N detections, G ground-truth boxes, F frames) and use its
-final decoder layer. Kept apart from `fit.py` and `report.py` so both use one definition.
+`match_dump` (nuScenes matching of the final layer), `tp_residuals` (matched ground truth −
+box of the true positives), `raw_covariances` (Σ of every detection from a covariance
+source), `resolve_cov_source` and `check_dims`; plus what a fit needs (`ts_labels`,
+`ts_logits`, `select_detections`, `split_frames`). Every caller — the fit, the summary, the
+CLI, the service and the detectors' report — goes through these, so a rule lives once.
+
+All functions take a validated `Dump` (N detections, G ground-truth boxes, F frames) and use
+its final decoder layer.
 """
 
 from __future__ import annotations
@@ -11,29 +17,15 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibrators.checks import check_choice
 from calibrators.covariance import layer_spread
-from calibrators.dump import BOX_FIELDS, Dump
+from calibrators.dump import Dump
 from calibrators.matching import MatchResult, match
 from calibrators.modulation import modulate_logits
+from calibrators.options import OptionError
+from calibrators.vocab import BOX_INDEX, COV_SOURCE_CHOICES, check_dims, wrap_angle
 
-COV_SOURCES = ("given", "layers", "none")
-_YAW = BOX_FIELDS.index("yaw")
-
-
-def check_dims(dims: str | Sequence[str]) -> tuple[str, ...]:
-    """Regression dims as a tuple of distinct box fields; `"x,y"` is accepted for `("x", "y")`."""
-    if isinstance(dims, str):
-        dims = [d.strip() for d in dims.split(",") if d.strip()]
-    out = tuple(str(d) for d in dims)
-    if not out:
-        raise ValueError("dims must name at least one box field")
-    for d in out:
-        if d not in BOX_FIELDS:
-            raise ValueError(f"dims must be box fields {list(BOX_FIELDS)}, got {d!r}")
-    if len(set(out)) != len(out):
-        raise ValueError(f"dims has duplicate fields: {list(out)}")
-    return out
+__all__ = ["check_dims", "match_dump", "raw_covariances", "resolve_cov_source", "select_detections",
+           "split_frames", "tp_residuals", "ts_labels", "ts_logits"]
 
 
 def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> str:
@@ -41,22 +33,24 @@ def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> st
 
     `auto` is `given` when the dump carries `det_cov` over exactly `dims`, else `layers` when
     it has at least two decoder layers, else `none`. An explicit source the dump cannot
-    provide raises a ValueError naming `cov_source`.
+    provide raises an `OptionError` naming `cov_source`.
     """
-    check_choice("cov_source", cov_source, ("auto", *COV_SOURCES))
+    if cov_source not in COV_SOURCE_CHOICES:
+        raise OptionError("cov_source", f"cov_source must be one of {list(COV_SOURCE_CHOICES)}, "
+                                        f"got {cov_source!r}")
     if cov_source == "auto":
         if dump.det_cov is not None and dump.cov_dims == dims:
             return "given"
         return "layers" if dump.n_layers >= 2 else "none"
     if cov_source == "given":
         if dump.det_cov is None:
-            raise ValueError("cov_source='given' but the dump has no det_cov")
+            raise OptionError("cov_source", "cov_source='given' but the dump has no det_cov")
         if dump.cov_dims != dims:
-            raise ValueError(f"cov_source='given' needs the dump's cov_dims {list(dump.cov_dims)} "
-                             f"to equal dims {list(dims)}")
+            raise OptionError("cov_source", f"cov_source='given' needs the dump's cov_dims "
+                                            f"{list(dump.cov_dims)} to equal dims {list(dims)}")
     if cov_source == "layers" and dump.n_layers < 2:
-        raise ValueError(f"cov_source='layers' needs at least 2 decoder layers, the dump has "
-                         f"{dump.n_layers}")
+        raise OptionError("cov_source", f"cov_source='layers' needs at least 2 decoder "
+                                        f"layers, the dump has {dump.n_layers}")
     return cov_source
 
 
@@ -69,7 +63,7 @@ def raw_covariances(dump: Dump, source: str, dims: tuple[str, ...]) -> np.ndarra
     return None
 
 
-def match_dump(dump: Dump, threshold: float) -> MatchResult:
+def match_dump(dump: Dump, threshold: float = 2.0) -> MatchResult:
     """nuScenes matching of the final-layer detections to the ground truth at `threshold` m.
 
     No class range filter: a profile must calibrate every detection the detector emits,
@@ -112,18 +106,19 @@ def ts_logits(dump: Dump, modulation: bool = False) -> np.ndarray:
     return z
 
 
-def tp_residuals(dump: Dump, gt_index: np.ndarray, tp: np.ndarray,
-                 dims: tuple[str, ...]) -> np.ndarray:
-    """`[M, D]` residuals (matched ground truth − final box) over `dims` of the M TPs.
+def tp_residuals(dump: Dump, matched: MatchResult,
+                 dims: str | Sequence[str] = ("x", "y")) -> np.ndarray:
+    """`[M, D]` residuals (matched ground truth − final box) over `dims` of the M TPs of
+    `matched` (a `match_dump` of this dump), in detection order.
 
     A yaw residual is wrapped to (−π, π].
     """
-    cols = [BOX_FIELDS.index(d) for d in dims]
-    tp = np.asarray(tp, dtype=bool)
-    res = dump.gt_boxes[np.asarray(gt_index)[tp]][:, cols] - dump.final_boxes[tp][:, cols]
+    cols = [BOX_INDEX[d] for d in check_dims(dims)]
+    tp = np.asarray(matched.tp, dtype=bool)
+    res = dump.gt_boxes[np.asarray(matched.gt_index)[tp]][:, cols] - dump.final_boxes[tp][:, cols]
     for j, c in enumerate(cols):
-        if c == _YAW:
-            res[:, j] = np.pi - np.mod(np.pi - res[:, j], 2.0 * np.pi)
+        if c == BOX_INDEX["yaw"]:
+            res[:, j] = wrap_angle(res[:, j])
     return res
 
 

@@ -1,4 +1,4 @@
-"""Before/after calibration report for a set of detections (a `Dump`), as a JSON-able dict.
+"""Before/after calibration summary of a set of detections (a `Dump`): `summarize` -> `Summary`.
 
 *Before* is the raw detector: temperature 1 and the raw covariance of the profile's source
 (`given` det_cov, `layers` spread, `none`: no covariance, so regression metrics are null).
@@ -10,7 +10,10 @@ both sides keep the raw detector's labels. Regression metrics use the TPs' resid
 missing or singular (the density is undefined), and `regression.note_before` /
 `note_after` say why.
 
-Keys (stable; every float may be null):
+`Summary` is a typed, frozen result; `Summary.to_dict()` is the stable JSON form a profile's
+report stores (and `Summary.from_dict` reads it back). `ProfileReport` is a profile's
+`report`: the summary of the fit part and of the held-out part. Keys of the dict form
+(stable; every float may be null):
 
     schema: 1, threshold: float, score_mode: str, cov_source: str, dims: [D] str,
     temperature: float | null
@@ -39,31 +42,29 @@ from typing import Any
 
 import numpy as np
 from scipy import stats
-from scipy.special import gammaln, log_softmax
+from scipy.special import log_softmax
 
 from calibrators import metrics
-from calibrators._fitdata import (
-    check_dims,
-    match_dump,
-    raw_covariances,
-    resolve_cov_source,
-    tp_residuals,
-)
+from calibrators.apply import apply_profile, check_profile_fits
 from calibrators.dump import Dump
+from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
 from calibrators.matching import MatchResult
+from calibrators.metrics import expected_mahalanobis
 from calibrators.modulation import modulate_logits
 from calibrators.profile import CalibrationProfile
+from calibrators.summary_types import ProfileReport, Summary
+from calibrators.vocab import check_dims
 
-__all__ = ["calibration_report", "expected_mahalanobis", "format_table"]
+__all__ = ["ProfileReport", "Summary", "format_table", "summarize"]
 
 _CURVE_POINTS = 50
 _CLASS_METRICS = ("ece", "mce", "dece", "nll", "brier")
 
 
-def calibration_report(dump: Dump, profile: CalibrationProfile | None = None, *,
-                       threshold: float = 2.0, dims: str | Sequence[str] = ("x", "y"),
-                       cov_source: str = "auto", match: MatchResult | None = None,
-                       max_points: int = 2000, seed: int = 0) -> dict[str, Any]:
+def summarize(dump: Dump, profile: CalibrationProfile | None = None, *,
+              threshold: float = 2.0, dims: str | Sequence[str] = ("x", "y"),
+              cov_source: str = "auto", match: MatchResult | None = None,
+              max_points: int = 2000, seed: int = 0) -> Summary:
     """Before/after metrics of `dump`'s final-layer detections (keys: module docstring).
 
     With a `profile`, its dims and covariance source are used (`dims` / `cov_source` are
@@ -72,10 +73,7 @@ def calibration_report(dump: Dump, profile: CalibrationProfile | None = None, *,
     """
     if profile is not None:
         dims, source = tuple(profile.cov_dims), profile.cov_source
-        resolve_cov_source(dump, source, dims)
-        if tuple(profile.classes) != tuple(dump.classes) or profile.score_mode != dump.score_mode:
-            raise ValueError(f"profile is for {profile.score_mode} classes {list(profile.classes)}"
-                             f" but the dump has {dump.score_mode} classes {list(dump.classes)}")
+        check_profile_fits(dump, profile)
     else:
         dims = check_dims(dims)
         source = resolve_cov_source(dump, cov_source, dims)
@@ -84,11 +82,11 @@ def calibration_report(dump: Dump, profile: CalibrationProfile | None = None, *,
     cov_raw = raw_covariances(dump, source, dims)
     before = _State(dump.det_scores, _full_probs(dump, 1.0), cov_raw)
     after = None if profile is None else _calibrated(dump, profile, cov_raw)
-    res = tp_residuals(dump, m.gt_index, tp, dims)
+    res = tp_residuals(dump, m, dims)
     rng = np.random.default_rng(seed)
     sample = np.sort(rng.permutation(len(res))[:max_points])
     n_tp = int(tp.sum())
-    return {
+    return Summary.from_dict({
         "schema": 1,
         "threshold": float(threshold),
         "score_mode": dump.score_mode,
@@ -103,12 +101,7 @@ def calibration_report(dump: Dump, profile: CalibrationProfile | None = None, *,
         "regression": _regression_section(res, tp, dims, before, after),
         "per_class": _per_class(dump, tp, res, profile, before, after),
         "plots": _plots(dump, tp, res, dims, before, after, sample),
-    }
-
-
-def expected_mahalanobis(dim: int) -> float:
-    """E[MD] for a calibrated D-dim Gaussian: the χ_D mean sqrt(2)·Γ((D+1)/2)/Γ(D/2)."""
-    return float(np.sqrt(2.0) * np.exp(gammaln((dim + 1) / 2.0) - gammaln(dim / 2.0)))
+    })
 
 
 class _State:
@@ -133,11 +126,7 @@ def _calibrated(dump: Dump, profile: CalibrationProfile, cov_raw: np.ndarray | N
     probs = _full_probs(dump, profile.temperature, profile.modulation)
     if n == 0:
         return _State(np.zeros(0), probs, np.zeros((0, dim, dim)))
-    out = profile.calibrate(
-        layer_logits=dump.det_logits, boxes=dump.final_boxes,
-        covariances=cov_raw if profile.cov_source == "given" else None,
-        layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
-        ego_xy=dump.ego_xy(dump.det_frame))
+    out = apply_profile(dump, profile)
     return _State(out.scores, probs, out.covariances)
 
 
@@ -293,50 +282,45 @@ def _finite(value: float | None) -> float | None:
     return v if np.isfinite(v) else None
 
 
-def format_table(report: dict[str, Any]) -> str:
-    """A plain-text before/after table of a `calibration_report` dict.
-
-    Also accepts a profile's report (`{"fit": ..., "holdout": ..., ...}`): one table per part.
-    """
-    if "fit" in report:
-        parts = [("fit part", report["fit"])]
-        if report.get("holdout") is not None:
-            parts.append(("held-out part", report["holdout"]))
-        min_score = report.get("min_score")
-        head = "detections taking part: " + ("all queries" if min_score is None
-                                               else f"raw score >= {min_score:g}")
+def format_table(summary: Summary | ProfileReport) -> str:
+    """A plain-text before/after table of a `Summary`, or of a `ProfileReport` (one table per
+    part: the fit part and, if any, the held-out part)."""
+    if isinstance(summary, ProfileReport):
+        parts = [("fit part", summary.fit)]
+        if summary.holdout is not None:
+            parts.append(("held-out part", summary.holdout))
+        head = "detections taking part: " + ("all queries" if summary.min_score is None
+                                               else f"raw score >= {summary.min_score:g}")
         return "\n\n".join([head] + [f"== {name} ==\n{format_table(r)}" for name, r in parts])
-    c, reg = report["counts"], report["regression"]
-    t = report["temperature"]
-    lines = [f"{c['detections']} detections, {c['ground_truth']} ground truth, {c['tp']} TP at "
-             f"{report['threshold']:g} m; T = {'-' if t is None else f'{t:.4g}'}, covariance "
-             f"{report['cov_source']} over {','.join(report['dims'])}",
+    c, reg, t = summary.counts, summary.regression, summary.temperature
+    lines = [f"{c.detections} detections, {c.ground_truth} ground truth, {c.tp} TP at "
+             f"{summary.threshold:g} m; T = {'-' if t is None else f'{t:.4g}'}, covariance "
+             f"{summary.cov_source} over {','.join(summary.dims)}",
              f"{'metric':<32}{'before':>12}{'after':>12}", "classification"]
     names = {"ece": "ECE", "mce": "MCE", "dece": "D-ECE", "nll": "NLL", "brier": "Brier"}
     for key, label in names.items():
-        pair = report["classification"][key]
-        lines.append(_row(label, pair["before"], pair["after"]))
-    lines.append(f"regression ({reg['n']} TPs)")
-    lines.append(_row("NLL", reg["nll"]["before"], reg["nll"]["after"]))
-    lines.append(_row(f"mean MD (E = {reg['expected_md']:.3f})", reg["mean_md"]["before"],
-                      reg["mean_md"]["after"]))
-    cov = reg["coverage"]
-    for i, (r, nominal) in enumerate(zip(cov["radii"], cov["nominal"], strict=True)):
+        pair = summary.classification[key]
+        lines.append(_row(label, pair.before, pair.after))
+    lines.append(f"regression ({reg.n} TPs)")
+    lines.append(_row("NLL", reg.nll.before, reg.nll.after))
+    lines.append(_row(f"mean MD (E = {reg.expected_md:.3f})", reg.mean_md.before,
+                      reg.mean_md.after))
+    cov = reg.coverage
+    for i, (r, nominal) in enumerate(zip(cov.radii, cov.nominal, strict=True)):
         lines.append(_row(f"coverage {r:g}σ (nominal {nominal:.3f})",
-                          None if cov["before"] is None else cov["before"][i],
-                          None if cov["after"] is None else cov["after"][i]))
-    for axis, pair in reg["miscalibration_area"].items():
-        lines.append(_row(f"miscalibration area {axis}", pair["before"], pair["after"]))
-    for side in ("before", "after"):
-        note = reg[f"note_{side}"]
+                          None if cov.before is None else cov.before[i],
+                          None if cov.after is None else cov.after[i]))
+    for axis, pair in reg.miscalibration_area.items():
+        lines.append(_row(f"miscalibration area {axis}", pair.before, pair.after))
+    for side, note in (("before", reg.note_before), ("after", reg.note_after)):
         if note and note != "no profile":
             lines.append(f"  ({side}: {note})")
     lines += ["", f"{'class':<22}{'n':>7}{'TP':>7}{'k':>10}{'NLL before':>12}{'NLL after':>12}"]
-    for row in report["per_class"]:
-        k = "-" if row["k"] is None else f"{row['k']:.4g}" + ("*" if row["fallback"] else "")
-        lines.append(f"{row['class']:<22}{row['n']:>7}{row['tp']:>7}{k:>10}"
-                     f"{_cell(row['nll_before'])}{_cell(row['nll_after'])}")
-    if any(row["fallback"] for row in report["per_class"]):
+    for row in summary.per_class:
+        k = "-" if row.k is None else f"{row.k:.4g}" + ("*" if row.fallback else "")
+        lines.append(f"{row.name:<22}{row.n:>7}{row.tp:>7}{k:>10}"
+                     f"{_cell(row.nll_before)}{_cell(row.nll_after)}")
+    if any(row.fallback for row in summary.per_class):
         lines.append("* too few matches: pooled k")
     return "\n".join(lines)
 

@@ -1,4 +1,5 @@
-"""calibration_report and format_table: stable keys, null handling, real improvements."""
+"""summarize, Summary / ProfileReport and format_table: stable keys, typed round trips, null
+handling, real improvements."""
 
 from __future__ import annotations
 
@@ -8,7 +9,8 @@ import math
 import numpy as np
 import pytest
 
-from calibrators.report import calibration_report, expected_mahalanobis, format_table
+from calibrators import ProfileReport, Summary, format_table, summarize
+from calibrators.metrics import expected_mahalanobis
 
 TOP_KEYS = {"schema", "threshold", "score_mode", "cov_source", "dims", "temperature", "counts",
             "classification", "regression", "per_class", "plots"}
@@ -38,7 +40,7 @@ def test_expected_mahalanobis_is_the_chi_mean():
 
 
 def test_report_without_profile_has_null_after(small_dump):
-    report = calibration_report(small_dump)
+    report = summarize(small_dump).to_dict()
     _check_keys(report)
     assert report["temperature"] is None and report["cov_source"] == "given"
     assert all(pair["after"] is None for pair in report["classification"].values())
@@ -51,14 +53,14 @@ def test_report_without_profile_has_null_after(small_dump):
 
 
 def test_report_with_no_covariance_nulls_regression_before(small_dump):
-    report = calibration_report(small_dump, cov_source="none")
+    report = summarize(small_dump, cov_source="none").to_dict()
     _check_keys(report)
     reg = report["regression"]
     assert reg["nll"]["before"] is None and reg["mean_md"]["before"] is None
     assert reg["coverage"]["before"] is None
     assert "undefined" in reg["note_before"]
     assert report["plots"]["residuals"]["before"] is None
-    assert "regression" in format_table(report)
+    assert "regression" in format_table(Summary.from_dict(report))
 
 
 def test_calibration_improves_the_fit_part(sigmoid_profile):
@@ -99,19 +101,19 @@ def test_per_class_rows_and_plot_data(sigmoid_profile, sigmoid_dump):
 
 
 def test_residual_sample_is_capped(small_dump):
-    report = calibration_report(small_dump, max_points=100)
+    report = summarize(small_dump, max_points=100).to_dict()
     assert len(report["plots"]["residuals"]["before"]["sigma"]) == 100
 
 
 def test_softmax_report_uses_categorical_nll(softmax_dump):
-    report = calibration_report(softmax_dump, cov_source="layers")
+    report = summarize(softmax_dump, cov_source="layers").to_dict()
     _check_keys(report)
     assert report["score_mode"] == "softmax"
     assert report["classification"]["nll"]["before"] > 0
 
 
 def test_format_table_lists_metrics_and_classes(sigmoid_profile):
-    text = format_table(sigmoid_profile.report)
+    text = format_table(ProfileReport.from_dict(sigmoid_profile.report))
     assert "== fit part ==" in text and "== held-out part ==" in text
     assert "all queries" in text
     for label in ("ECE", "D-ECE", "Brier", "NLL", "mean MD", "coverage 1σ",
@@ -119,3 +121,22 @@ def test_format_table_lists_metrics_and_classes(sigmoid_profile):
         assert label in text
     header = next(line for line in text.splitlines() if line.startswith("metric"))
     assert "before" in header and "after" in header
+
+
+def test_summary_and_profile_report_round_trip_their_dict_form(sigmoid_profile, small_dump):
+    stored = sigmoid_profile.report
+    report = ProfileReport.from_dict(stored)
+    assert report.to_dict() == stored
+    assert json.dumps(report.to_dict()) == json.dumps(stored)      # same key order too
+    assert report.fit.counts.tp == stored["fit"]["counts"]["tp"]
+    assert report.fit.per_class[0].name == stored["fit"]["per_class"][0]["class"]
+    summary = summarize(small_dump)
+    assert Summary.from_dict(summary.to_dict()) == summary
+    assert ProfileReport.from_dict({}) is None                     # a profile built by hand
+
+
+def test_summary_from_dict_names_a_missing_key(sigmoid_profile):
+    broken = json.loads(json.dumps(sigmoid_profile.report["fit"]))
+    del broken["regression"]["mean_md"]
+    with pytest.raises(ValueError, match="regression is missing key 'mean_md'"):
+        Summary.from_dict(broken)

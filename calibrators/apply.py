@@ -1,0 +1,36 @@
+"""Apply a profile to a whole dump: `apply_profile(dump, profile) -> CalibratedDetections`.
+
+The one place that knows which of a dump's arrays a profile needs: every decoder layer's
+logits (modulation uses them; the final layer is the last), the final boxes, the raw Σ of
+the profile's covariance source (`given`: the dump's det_cov; `layers`: its per-layer
+boxes) and each detection's ego position.
+"""
+
+from __future__ import annotations
+
+from calibrators.dump import Dump
+from calibrators.matched import resolve_cov_source
+from calibrators.profile import CalibratedDetections, CalibrationProfile
+
+__all__ = ["apply_profile", "check_profile_fits"]
+
+
+def check_profile_fits(dump: Dump, profile: CalibrationProfile) -> None:
+    """Raise ValueError unless `profile` can calibrate `dump`: the same classes in the same
+    order and score mode, and the covariance source the profile was fit with."""
+    if tuple(profile.classes) != tuple(dump.classes) or profile.score_mode != dump.score_mode:
+        raise ValueError(f"profile is for {profile.score_mode} classes {list(profile.classes)} "
+                         f"but the dump has {dump.score_mode} classes {list(dump.classes)}")
+    resolve_cov_source(dump, profile.cov_source, tuple(profile.cov_dims))
+
+
+def apply_profile(dump: Dump, profile: CalibrationProfile, *,
+                  ellipse_confidence: float = 0.95) -> CalibratedDetections:
+    """Calibrate the N final-layer detections of `dump` with `profile` (arrays [N], in the
+    dump's detection order); see `CalibrationProfile.calibrate` for the result's fields."""
+    check_profile_fits(dump, profile)
+    return profile.calibrate(
+        layer_logits=dump.det_logits, boxes=dump.final_boxes,
+        covariances=dump.det_cov if profile.cov_source == "given" else None,
+        layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
+        ego_xy=dump.ego_xy(dump.det_frame), ellipse_confidence=ellipse_confidence)
