@@ -12,7 +12,9 @@ from typing import Any
 
 import numpy as np
 
+from app.cache import LoadedProfile
 from app.errors import RequestError
+from app.schemas.calibrate import DetectionIn
 
 
 class DetectorUnavailable(RuntimeError):
@@ -105,3 +107,22 @@ class DetectorService:
         return DetectorOutput(layer_logits=logits[keep], layer_boxes=boxes[keep], points=cloud,
                               gt_boxes=gt_boxes, gt_labels=gt_labels,
                               classes=tuple(model.config.classes))
+
+
+def detections_of(out: DetectorOutput, loaded: LoadedProfile) -> list[DetectionIn]:
+    """Request-shaped detections (per-layer logits and boxes) from raw detector outputs."""
+    prof = loaded.profile
+    if tuple(prof.classes) != out.classes:
+        raise RequestError(["body", "profile"],
+                           f"profile {loaded.record.ref} is for classes {list(prof.classes)} but "
+                           f"the detector predicts {list(out.classes)}")
+    covs = None
+    if prof.cov_source == "given" and len(out.layer_logits):
+        from calibrators.covariance import layer_spread
+
+        covs = layer_spread(out.layer_boxes, dims=tuple(prof.cov_dims)).tolist()
+    logits, boxes = out.layer_logits.tolist(), out.layer_boxes.tolist()
+    return [DetectionIn.model_construct(
+        id=i, logits=None, layer_logits=logits[i], scores=None, score=None, label=None,
+        box=boxes[i][-1], layer_boxes=boxes[i], covariance=None if covs is None else covs[i])
+        for i in range(len(logits))]

@@ -1,9 +1,11 @@
 """Turn validated request detections into library arrays, calibrate, and build response rows.
 
-Detections of one request may mix evidence forms (logits, per-class scores, one score +
-label) and uncertainty forms (covariance, layer boxes, none); they are grouped by form,
-each group goes through `CalibrationProfile.calibrate` once, and the rows come back in
-request order. Mismatches with the profile are `RequestError`s naming the field path.
+Detections of one request may mix evidence forms (logits, per-layer logits, per-class scores,
+one score + label) and uncertainty forms (covariance, layer boxes, none); they are grouped by
+form and shape (`GroupKey`), each group goes through `CalibrationProfile.calibrate` once, and
+the rows come back in request order. Every check against the profile (column width, the
+covariance the profile's source needs, PSD, modulation's layers) lives in the library: a
+`FieldError` it raises is mapped here to the request's field path (`locate`) and a 422.
 """
 
 from __future__ import annotations
@@ -11,23 +13,34 @@ from __future__ import annotations
 from collections import defaultdict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from app.cache import LoadedProfile
 from app.errors import RequestError
 from app.schemas.calibrate import DetectionIn, FrameIn
+from calibrators.exceptions import FieldError
 
 _EPS = 1e-12
-_SOURCE_TEXT = {"layers": "the spread of layer_boxes", "none": "depth alone (no input covariance)"}
+
+
+class GroupKey(NamedTuple):
+    """The form and shape shared by the detections of one group (so their arrays stack)."""
+
+    evidence: str        # request field holding the class evidence: logits | layer_logits | ...
+    width: int           # its columns (0 for score + label)
+    n_logit_layers: int  # L of layer_logits (0 otherwise)
+    cov_dim: int         # D of a given covariance (0: none given)
+    n_box_layers: int    # L of layer_boxes (0: none given)
 
 
 @dataclass
 class _Group:
-    """Arrays of detections that share one evidence/uncertainty form."""
+    """Arrays of the detections that share one `GroupKey`."""
 
     index: list[int] = field(default_factory=list)
-    evidence: list = field(default_factory=list)   # logits rows, [L, C'] layer logits, or [score]
+    evidence: list = field(default_factory=list)   # logits rows, [L, C'] layer logits, or score
     labels: list[int] = field(default_factory=list)
     boxes: list[list[float]] = field(default_factory=list)
     covariances: list[list[list[float]]] = field(default_factory=list)
@@ -77,129 +90,96 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
     `locate(frame_index, detection_index)` gives the field path used in error messages.
     """
     prof = loaded.profile
-    classes = list(prof.classes)
-    width = len(classes) + (1 if prof.score_mode == "softmax" else 0)
-    groups: dict[tuple[str, bool, int, int], _Group] = defaultdict(_Group)
+    groups: dict[GroupKey, _Group] = defaultdict(_Group)
     flat: list[DetectionIn] = []
-    frame_of: list[int] = []
+    where: list[tuple[int, int]] = []
     for fi, frame in enumerate(frames):
         ego = (frame.ego_translation or [0.0, 0.0, 0.0])[:2]
         for di, det in enumerate(frame.detections):
-            here = locate(fi, di)
-            key, g_row = _prepare(det, here, classes, width, tuple(prof.cov_dims),
-                                  prof.cov_source, prof.score_mode, loaded.record.ref,
-                                  prof.modulation)
+            key, evidence, label = _evidence(det, locate(fi, di), prof.classes, prof.score_mode)
             g = groups[key]
             g.index.append(len(flat))
-            g.evidence.append(g_row[0])
-            g.labels.append(g_row[1])
-            g.boxes.append(g_row[2])
+            g.evidence.append(evidence)
+            g.labels.append(label)
+            g.boxes.append(_box9(det.box) if det.box is not None
+                           else det.layer_boxes[-1])  # type: ignore[index]
             if det.covariance is not None:
                 g.covariances.append(det.covariance)
-            if key[2]:
-                g.layer_boxes.append(det.layer_boxes or [])
+            if det.layer_boxes is not None:
+                g.layer_boxes.append(det.layer_boxes)
             g.ego_xy.append(ego)
             flat.append(det)
-            frame_of.append(fi)
+            where.append((fi, di))
 
     rows: list[dict[str, object] | None] = [None] * len(flat)
-    for (kind, has_cov, n_layers, _), g in groups.items():
-        _run_group(loaded, kind, has_cov, n_layers, g, confidence, flat, rows)
+    for key, g in groups.items():
+        try:
+            _run_group(loaded, key, g, confidence, flat, rows)
+        except FieldError as exc:
+            raise _located(exc, key, g, where, locate, loaded.record.ref) from None
     out: list[list[dict[str, object]]] = [[] for _ in frames]
     for i, row in enumerate(rows):
-        out[frame_of[i]].append(row)  # type: ignore[arg-type]
+        out[where[i][0]].append(row)  # type: ignore[arg-type]
     return out
 
 
-def _prepare(det: DetectionIn, loc: list[str | int], classes: list[str], width: int,
-             cov_dims: tuple[str, ...], cov_source: str, mode: str, ref: str,
-             modulation: bool = False,
-             ) -> tuple[tuple[str, bool, int, int], tuple[list, int, list[float]]]:
-    """Group key and `(evidence, label, box)` of one detection, checked against the profile.
-
-    A profile with logits modulation needs every decoder layer's logits: its evidence is the
-    `[L, C']` layer logits, and detections are grouped by L as well.
-    """
-    n_dims = len(cov_dims)
-    n_logit_layers = 0
-    if modulation:
-        layers = det.layer_logits
-        if det.score is not None or layers is None or len(layers) < 2:
-            raise _mismatch([*loc, "layer_logits"],
-                            f"profile {ref} modulates logits by their variance across decoder "
-                            "layers: give layer_logits with at least 2 layers")
-        bad = next((i for i, row in enumerate(layers) if len(row) != width), None)
-        if bad is not None:
-            raise _mismatch([*loc, "layer_logits", bad],
-                            f"layer_logits[{bad}] has {len(layers[bad])} columns but profile "
-                            f"{ref} ({mode}, {len(classes)} classes) needs {width}")
-        kind, label, evidence, n_logit_layers = "logits", -1, layers, len(layers)
-    elif det.score is not None:
+def _evidence(det: DetectionIn, loc: list[str | int], classes: Sequence[str], mode: str
+              ) -> tuple[GroupKey, list, int]:
+    """Group key, class evidence and label index (-1: from the logits) of one detection."""
+    n_logit_layers, label = 0, -1
+    if det.score is not None:
         kind, evidence = "score", [det.score]
         label = _label_index(det.label, classes, [*loc, "label"])  # type: ignore[arg-type]
+    elif det.layer_logits is not None:
+        kind, evidence, n_logit_layers = "layer_logits", det.layer_logits, len(det.layer_logits)
+    elif det.logits is not None:
+        kind, evidence = "logits", det.logits
     else:
-        kind, label = "logits", -1
-        if det.logits is not None:
-            evidence, field_name = det.logits, "logits"
-        elif det.layer_logits is not None:
-            evidence, field_name = det.layer_logits[-1], "layer_logits"
-        else:
-            evidence, field_name = _scores_to_logits(det.scores or [], mode), "scores"
-        got = len(evidence)
-        if got != width:
-            raise _mismatch([*loc, field_name],
-                            f"{field_name} has {got} columns but profile {ref} ({mode}, "
-                            f"{len(classes)} classes) needs {width}")
-    n_layers = 0
-    if cov_source == "given":
-        if det.covariance is None:
-            raise _mismatch([*loc, "covariance"],
-                            f"profile {ref} was fit on given covariances (cov_source 'given'): "
-                            f"give a {n_dims}x{n_dims} covariance over {list(cov_dims)}")
-        if len(det.covariance) != n_dims:
-            raise _mismatch([*loc, "covariance"],
-                            f"covariance is {len(det.covariance)}x{len(det.covariance)} but "
-                            f"profile {ref} has cov_dims {list(cov_dims)} ({n_dims}x{n_dims})")
-    elif det.covariance is not None:
-        raise _mismatch([*loc, "covariance"],
-                        f"profile {ref} takes its covariance from {_SOURCE_TEXT[cov_source]} "
-                        f"(cov_source {cov_source!r}), so its k does not apply to a given "
-                        "covariance: leave covariance out")
-    elif cov_source == "layers":
-        if det.layer_boxes is None or len(det.layer_boxes) < 2:
-            raise _mismatch([*loc, "layer_boxes"],
-                            f"profile {ref} takes box covariance from the spread across decoder "
-                            "layers (cov_source 'layers'): give layer_boxes with at least 2 "
-                            "layers")
-        n_layers = len(det.layer_boxes)
-    box = _box9(det.box) if det.box is not None else det.layer_boxes[-1]  # type: ignore[index]
-    return (kind, det.covariance is not None, n_layers, n_logit_layers), (evidence, label, box)
+        kind, evidence = "scores", _scores_to_logits(det.scores or [], mode)
+    width = 0 if kind == "score" else len(evidence[-1] if n_logit_layers else evidence)
+    key = GroupKey(kind, width, n_logit_layers,
+                   0 if det.covariance is None else len(det.covariance),
+                   0 if det.layer_boxes is None else len(det.layer_boxes))
+    return key, evidence, label
 
 
-def _run_group(loaded: LoadedProfile, kind: str, has_cov: bool, n_layers: int, g: _Group,
-               confidence: float, flat: list[DetectionIn], rows: list[dict[str, object] | None]
-               ) -> None:
+#: Library argument -> request field (`logits` is whatever evidence field the group used).
+_REQUEST_FIELD = {"scores": "score", "labels": "label", "boxes": "box",
+                  "covariances": "covariance", "layer_boxes": "layer_boxes",
+                  "layer_logits": "layer_logits"}
+
+
+def _located(exc: FieldError, key: GroupKey, g: _Group, where: list[tuple[int, int]],
+             locate: Locate, ref: str) -> RequestError:
+    """The library's error on one group, at the request field of the detection at fault (the
+    group's first detection when the error is about the whole group)."""
+    row = exc.row if exc.row is not None and 0 <= exc.row < len(g.index) else 0
+    fi, di = where[g.index[row]]
+    if exc.field == "ego_xy":
+        return _mismatch(locate(fi, di)[:-2] + ["ego_translation"], f"profile {ref}: {exc}")
+    name = key.evidence if exc.field == "logits" else _REQUEST_FIELD.get(exc.field, exc.field)
+    return _mismatch([*locate(fi, di), name], f"profile {ref}: {exc}")
+
+
+def _run_group(loaded: LoadedProfile, key: GroupKey, g: _Group, confidence: float,
+               flat: list[DetectionIn], rows: list[dict[str, object] | None]) -> None:
     prof = loaded.profile
     kwargs: dict[str, object] = {
         "boxes": np.asarray(g.boxes, dtype=np.float64),
         "ego_xy": np.asarray(g.ego_xy, dtype=np.float64),
         "ellipse_confidence": confidence,
     }
-    if kind == "score":
+    if key.evidence == "score":
         kwargs["scores"] = np.asarray(g.evidence, dtype=np.float64)[:, 0]
         kwargs["labels"] = np.asarray(g.labels, dtype=np.int64)
-    else:
-        evidence = np.asarray(g.evidence, dtype=np.float64)
-        # [N, L, C'] layer logits of a modulating profile, else final-layer logits [N, C']
-        kwargs["layer_logits" if evidence.ndim == 3 else "logits"] = evidence
-    if has_cov:
+    else:   # [N, L, C'] layer logits, or final-layer logits [N, C']
+        kwargs["layer_logits" if key.n_logit_layers else "logits"] = np.asarray(
+            g.evidence, dtype=np.float64)
+    if key.cov_dim:
         kwargs["covariances"] = np.asarray(g.covariances, dtype=np.float64)
-    if n_layers:
+    if key.n_box_layers:
         kwargs["layer_boxes"] = np.asarray(g.layer_boxes, dtype=np.float64)
-    try:
-        res = prof.calibrate(**kwargs)  # type: ignore[arg-type]
-    except ValueError as exc:
-        raise _mismatch(["body"], f"profile {loaded.record.ref}: {exc}") from None
+    res = prof.calibrate(**kwargs)  # type: ignore[arg-type]
     classes = prof.classes
     labels = res.labels.tolist()
     scores = res.scores.tolist()

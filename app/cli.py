@@ -29,11 +29,13 @@ class CliError(Exception):
 
 def build_parser() -> argparse.ArgumentParser:
     """The `detcal` parser with every subcommand whose module imports."""
+    from calibrators.vocab import detcal_version
+
     parser = argparse.ArgumentParser(
         prog="detcal",
         description="Post-hoc calibration of DETR-family 3D detectors: fit profiles on "
                     "validation dumps, evaluate, calibrate detections, serve the API.")
-    parser.add_argument("--version", action="version", version=f"%(prog)s {_version()}")
+    parser.add_argument("--version", action="version", version=f"%(prog)s {detcal_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     missing = []
     for name in REGISTRARS:
@@ -68,15 +70,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"detcal {args.command}: interrupted", file=sys.stderr)
         return 130
-
-
-def _version() -> str:
-    from importlib import metadata
-
-    try:
-        return metadata.version("detcal")
-    except metadata.PackageNotFoundError:
-        return "unknown"
 
 
 if __name__ == "__main__":

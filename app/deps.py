@@ -10,7 +10,7 @@ from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 
 from app.cache import ProfileCache
 from app.jobs import JobRunner
-from app.metrics import ServiceMetrics
+from app.prometheus import ServiceMetrics
 from app.settings import Settings
 from app.store import Store
 

@@ -10,16 +10,17 @@ from contextlib import asynccontextmanager
 from fastapi import FastAPI
 
 from app.body import install_openapi
+from app.bundled_detectors import DetectorService
 from app.cache import ProfileCache
 from app.dashboard.page import DashboardRenderer
-from app.detect import DetectorService
 from app.errors import install_handlers
 from app.jobs import JobRunner
 from app.limits import BodySizeLimitMiddleware
-from app.metrics import MetricsMiddleware, ServiceMetrics
+from app.prometheus import MetricsMiddleware, ServiceMetrics
 from app.routers import calibrate, dashboard, detect, fit, health, jobs, metrics, profiles
 from app.settings import Settings, get_settings
 from app.store import Store
+from calibrators.vocab import detcal_version
 
 log = logging.getLogger("detcal.app")
 
@@ -54,7 +55,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             runner.stop()
             store.close()
 
-    app = FastAPI(title="detcal", version=_version(), description=DESCRIPTION,
+    app = FastAPI(title="detcal", version=detcal_version(), description=DESCRIPTION,
                   lifespan=lifespan)
     app.state.settings = settings
     app.state.metrics = ServiceMetrics()
@@ -68,12 +69,3 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        upload_bytes=settings.max_upload_bytes)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     return app
-
-
-def _version() -> str:
-    from importlib import metadata
-
-    try:
-        return metadata.version("detcal")
-    except metadata.PackageNotFoundError:
-        return "0"

@@ -9,21 +9,28 @@ Keys the devkit does not know are ignored by it.
 
 from __future__ import annotations
 
-import math
+from collections.abc import Sequence
 from typing import Any
 
 from app.cache import LoadedProfile
 from app.calibration import calibrate_frames
+from app.errors import RequestError
 from app.schemas.calibrate import DetectionIn, FrameIn
 from app.schemas.nuscenes import NuScenesBox, NuScenesResults
+from calibrators.vocab import quaternion_yaw
 
 
-def box_to_detection(box: NuScenesBox) -> DetectionIn:
+def box_to_detection(box: NuScenesBox, loc: Sequence[str | int]) -> DetectionIn:
     """A detection from one `DetectionBox`: its logits if it has `detection_logits`, else its
     score and class name. The centre is taken relative to the ego (`ego_translation`) so the
-    distance is right; covariances and ellipses do not depend on where the centre is."""
-    w, x, y, z = box.rotation
-    yaw = math.atan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
+    distance is right; covariances and ellipses do not depend on where the centre is.
+
+    `loc` is the box's field path, named by the 422 of a rotation that has no yaw.
+    """
+    try:
+        yaw = quaternion_yaw(*box.rotation)
+    except ValueError as exc:
+        raise RequestError([*loc, "rotation"], str(exc)) from None
     rel = box.ego_translation
     centre = rel if rel is not None and any(rel) else box.translation   # zeros: unset
     logits = box.detection_logits
@@ -39,11 +46,15 @@ def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: f
                       ) -> tuple[dict[str, Any], int]:
     """The calibrated results document and the number of boxes calibrated."""
     tokens = list(doc.results)
-    frames = [FrameIn.model_construct(frame_id=t, ego_translation=None,
-                                      detections=[box_to_detection(b) for b in doc.results[t]])
-              for t in tokens]
-    rows = calibrate_frames(loaded, frames, confidence,
-                            locate=lambda fi, di: ["body", "results", tokens[fi], di])
+
+    def locate(fi: int, di: int) -> list[str | int]:
+        return ["body", "results", tokens[fi], di]
+
+    frames = [FrameIn.model_construct(
+        frame_id=t, ego_translation=None,
+        detections=[box_to_detection(b, locate(fi, di)) for di, b in enumerate(doc.results[t])])
+        for fi, t in enumerate(tokens)]
+    rows = calibrate_frames(loaded, frames, confidence, locate=locate)
     n = 0
     results: dict[str, list[dict[str, Any]]] = {}
     for token, frame_rows in zip(tokens, rows, strict=True):

@@ -6,6 +6,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from calibrators.exceptions import FieldError
+
 
 def as_float_array(name: str, value: object, ndim: int | None = None) -> np.ndarray:
     """Return `value` as a finite float64 array, or raise a ValueError naming `name`.
@@ -15,9 +17,9 @@ def as_float_array(name: str, value: object, ndim: int | None = None) -> np.ndar
     try:
         arr = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be numeric: {exc}") from None
+        raise FieldError(name, f"{name} must be numeric: {exc}") from None
     if ndim is not None and arr.ndim != ndim:
-        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+        raise FieldError(name, f"{name} must have {ndim} dimensions, got shape {arr.shape}")
     check_finite(name, arr)
     return arr
 
@@ -32,27 +34,27 @@ def check_finite(name: str, arr: np.ndarray) -> None:
         value = arr[where]
         kind = "NaN" if np.isnan(value) else "Inf"
         loc = where[0] if len(where) == 1 else list(where)
-        raise ValueError(f"{name} has {kind} at index {loc}")
+        raise FieldError(name, f"{name} has {kind} at index {loc}", row=where[0])
 
 
 def as_int_array(name: str, value: object, ndim: int = 1) -> np.ndarray:
     """Return `value` as an int64 array of `ndim` dimensions; floats must be whole numbers."""
     arr = np.asarray(value)
     if arr.ndim != ndim:
-        raise ValueError(f"{name} must have {ndim} dimensions, got shape {arr.shape}")
+        raise FieldError(name, f"{name} must have {ndim} dimensions, got shape {arr.shape}")
     if arr.size and arr.dtype.kind == "f":
         check_finite(name, arr)
         if not np.all(arr == np.round(arr)):
-            raise ValueError(f"{name} must hold integers")
+            raise FieldError(name, f"{name} must hold integers")
     elif arr.size and arr.dtype.kind not in "iub":
-        raise ValueError(f"{name} must hold integers, got dtype {arr.dtype}")
+        raise FieldError(name, f"{name} must hold integers, got dtype {arr.dtype}")
     return arr.astype(np.int64)
 
 
 def check_length(name: str, arr: np.ndarray, n: int, other: str) -> None:
     """Raise unless `arr` has `n` rows, the row count of `other`."""
     if arr.shape[0] != n:
-        raise ValueError(f"{name} has {arr.shape[0]} rows but {other} has {n}")
+        raise FieldError(name, f"{name} has {arr.shape[0]} rows but {other} has {n}")
 
 
 def check_index(name: str, arr: np.ndarray, upper: int, what: str) -> None:
@@ -62,7 +64,8 @@ def check_index(name: str, arr: np.ndarray, upper: int, what: str) -> None:
     bad = (arr < 0) | (arr >= upper)
     if bad.any():
         i = int(np.argmax(bad))
-        raise ValueError(f"{name}[{i}] = {int(arr[i])} is out of range for {upper} {what}")
+        raise FieldError(name, f"{name}[{i}] = {int(arr[i])} is out of range for {upper} {what}",
+                         row=i)
 
 
 def check_probabilities(name: str, arr: np.ndarray) -> None:
@@ -71,34 +74,36 @@ def check_probabilities(name: str, arr: np.ndarray) -> None:
     if bad.any():
         i = int(np.argmax(bad.reshape(-1)))
         value = arr.reshape(-1)[i]
-        raise ValueError(f"{name} must hold probabilities in [0, 1]; entry {i} is {value}")
+        raise FieldError(name, f"{name} must hold probabilities in [0, 1]; entry {i} is {value}",
+                         row=int(np.unravel_index(i, arr.shape)[0]))
 
 
 def check_covariances(name: str, cov: np.ndarray, n: int | None = None, dim: int | None = None,
                       tol: float = 1e-9) -> None:
     """Raise unless `cov` is `[N, D, D]`, symmetric and positive semi-definite."""
     if cov.ndim != 3 or cov.shape[1] != cov.shape[2]:
-        raise ValueError(f"{name} must have shape [N, D, D], got {cov.shape}")
+        raise FieldError(name, f"{name} must have shape [N, D, D], got {cov.shape}")
     if n is not None and cov.shape[0] != n:
-        raise ValueError(f"{name} has {cov.shape[0]} matrices but {n} were expected")
+        raise FieldError(name, f"{name} has {cov.shape[0]} matrices but {n} were expected")
     if dim is not None and cov.shape[1] != dim:
-        raise ValueError(f"{name} must be {dim}x{dim}, got {cov.shape[1]}x{cov.shape[2]}")
+        raise FieldError(name, f"{name} must be {dim}x{dim}, got {cov.shape[1]}x{cov.shape[2]}")
     check_finite(name, cov)
     if cov.shape[0] == 0:
         return
     scale = np.maximum(np.abs(cov).max(axis=(1, 2)), 1.0)
     asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2)) > tol * scale
     if asym.any():
-        raise ValueError(f"{name}[{int(np.argmax(asym))}] is not symmetric")
+        i = int(np.argmax(asym))
+        raise FieldError(name, f"{name}[{i}] is not symmetric", row=i)
     eig_min = np.linalg.eigvalsh(cov)[:, 0]
     bad = eig_min < -tol * scale
     if bad.any():
         i = int(np.argmax(bad))
-        raise ValueError(
-            f"{name}[{i}] is not positive semi-definite (smallest eigenvalue {eig_min[i]:.3g})")
+        raise FieldError(name, f"{name}[{i}] is not positive semi-definite (smallest "
+                               f"eigenvalue {eig_min[i]:.3g})", row=i)
 
 
 def check_choice(name: str, value: str, choices: Sequence[str]) -> None:
     """Raise unless `value` is one of `choices`."""
     if value not in choices:
-        raise ValueError(f"{name} must be one of {list(choices)}, got {value!r}")
+        raise FieldError(name, f"{name} must be one of {list(choices)}, got {value!r}")

@@ -12,17 +12,14 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+from calibrators.exceptions import FieldError
 from calibrators.vocab import COV_SOURCE_CHOICES, check_dims
 
 __all__ = ["FitOptions", "OptionError", "OptionSpec"]
 
 
-class OptionError(ValueError):
+class OptionError(FieldError):
     """A fit option has a bad value; `field` is the option's name."""
-
-    def __init__(self, field: str, message: str) -> None:
-        super().__init__(message)
-        self.field = field
 
 
 @dataclass(frozen=True)

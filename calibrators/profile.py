@@ -31,6 +31,7 @@ from calibrators.checks import (
 from calibrators.covariance import dim_indices, layer_spread
 from calibrators.depth import add_depth_term
 from calibrators.ellipse import Ellipse, ellipse
+from calibrators.exceptions import FieldError
 from calibrators.modulation import modulate_logits
 from calibrators.scores import class_probabilities, predict
 from calibrators.vocab import COV_SOURCES, SCORE_MODES, detcal_version
@@ -180,11 +181,11 @@ class CalibrationProfile:
         n = len(labels_)
         box = as_float_array("boxes", _required("boxes", boxes), ndim=2)
         if box.shape[1] != 9:
-            raise ValueError(f"boxes must have shape [N, 9], got {box.shape}")
+            raise FieldError("boxes", f"boxes must have shape [N, 9], got {box.shape}")
         check_length("boxes", box, n, "the class evidence")
         ego = np.zeros((n, 2)) if ego_xy is None else as_float_array("ego_xy", ego_xy, ndim=2)
         if ego.shape != (n, 2):
-            raise ValueError(f"ego_xy must have shape [{n}, 2], got {ego.shape}")
+            raise FieldError("ego_xy", f"ego_xy must have shape [{n}, 2], got {ego.shape}")
         distances = np.hypot(box[:, 0] - ego[:, 0], box[:, 1] - ego[:, 1])
         base = self._base_covariance(covariances, layer_boxes, n)
         k_table = np.array([self.depth_k.get(c, self.pooled_k) for c in self.classes])
@@ -201,31 +202,39 @@ class CalibrationProfile:
         given = [name for name, value in (("logits", logits), ("layer_logits", layer_logits),
                                           ("scores", scores)) if value is not None]
         if len(given) != 1:
-            raise ValueError(f"pass either logits or scores (with labels), or layer_logits in "
-                             f"place of logits; got {given or 'none'}")
+            raise FieldError("logits", f"pass either logits or scores (with labels), or "
+                                       f"layer_logits in place of logits; got {given or 'none'}")
         if self.modulation and layer_logits is None:
-            raise ValueError(f"layer_logits [N, L, C'] are required: the profile applies logits "
-                             f"modulation, which needs every decoder layer's logits, not "
-                             f"{given[0]}")
+            raise FieldError("layer_logits", f"the profile applies logits modulation, which "
+                                             f"needs layer_logits with at least 2 layers "
+                                             f"[N, L, C'] (every decoder layer's logits), not "
+                                             f"{given[0]}")
         n_classes = len(self.classes)
         want = n_classes + (1 if self.score_mode == "softmax" else 0)
         if layer_logits is not None:
             layers = as_float_array("layer_logits", layer_logits, ndim=3)
             if layers.shape[2] != want:
-                raise ValueError(f"layer_logits has {layers.shape[2]} columns but the profile's "
-                                 f"{self.score_mode} mode with {n_classes} classes needs {want}")
+                raise FieldError("layer_logits", f"layer_logits has {layers.shape[2]} columns but "
+                                                 f"the profile's {self.score_mode} mode with "
+                                                 f"{n_classes} classes needs {want}")
+            if self.modulation and layers.shape[1] < 2:
+                raise FieldError("layer_logits", f"the profile applies logits modulation, "
+                                                 f"which needs layer_logits with at least 2 "
+                                                 f"layers, got {layers.shape[1]}")
             logits = layers[:, -1]
         if logits is not None:
             z = as_float_array("logits", logits, ndim=2)
             if z.shape[1] != want:
-                raise ValueError(f"logits has {z.shape[1]} columns but the profile's "
-                                 f"{self.score_mode} mode with {n_classes} classes needs {want}")
+                raise FieldError("logits", f"logits has {z.shape[1]} columns but the profile's "
+                                           f"{self.score_mode} mode with {n_classes} classes "
+                                           f"needs {want}")
             pred, raw = predict(z, self.score_mode)
             if labels is not None:
                 given_labels = as_int_array("labels", labels)
                 check_length("labels", given_labels, len(pred), "logits")
                 if not np.array_equal(given_labels, pred):
-                    raise ValueError("labels differ from the arg-max of logits; pass one of them")
+                    raise FieldError("labels", "labels differ from the arg-max of logits; "
+                                               "pass one of them")
             if self.modulation:
                 z = modulate_logits(layers)
             probs = class_probabilities(z, self.score_mode, self.temperature)
@@ -244,11 +253,19 @@ class CalibrationProfile:
         """`[N, D, D]` Σ before depth scaling, from the profile's cov_source."""
         dim = len(self.cov_dims)
         if self.cov_source != "given" and covariances is not None:
-            raise ValueError(f"covariances were given but the profile's cov_source is "
-                             f"{self.cov_source!r}: its k was fit without them")
+            raise FieldError("covariances", f"covariances were given but the profile's "
+                                            f"cov_source is {self.cov_source!r}: its k was fit "
+                                            f"without them")
         if self.cov_source == "given":
-            cov = as_float_array("covariances", _required(
-                "covariances (the profile's cov_source is 'given')", covariances), ndim=3)
+            if covariances is None:
+                raise FieldError("covariances", f"covariances are required: the profile was fit "
+                                                f"on given covariances (cov_source 'given') over "
+                                                f"cov_dims {list(self.cov_dims)}")
+            cov = as_float_array("covariances", covariances, ndim=3)
+            if cov.shape[1:] != (dim, dim):
+                raise FieldError("covariances", f"covariances are {cov.shape[1]}x{cov.shape[2]} "
+                                                f"but the profile's cov_dims "
+                                                f"{list(self.cov_dims)} need {dim}x{dim}")
             check_covariances("covariances", cov, n=n, dim=dim)
             return cov
         if self.cov_source == "layers":
@@ -308,8 +325,9 @@ _OPTIONAL_KEYS: dict[str, Any] = {"modulation": False}
 
 
 def _required(name: str, value: Any) -> Any:
+    """`value`, or a FieldError naming the argument (the first word of `name`) if None."""
     if value is None:
-        raise ValueError(f"{name} is required")
+        raise FieldError(name.split()[0], f"{name} is required")
     return value
 
 

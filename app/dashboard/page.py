@@ -1,5 +1,9 @@
 """Assemble the dashboard HTML: health and request rates, profiles, the before/after table,
-plots from the active profile's report, and a simulated bird's-eye frame before and after."""
+plots from the active profile's report, and a simulated bird's-eye frame before and after.
+
+The plots (matplotlib) and the bundled detectors (torch) are imported when a page first
+draws them, so importing the service loads neither.
+"""
 
 from __future__ import annotations
 
@@ -11,7 +15,6 @@ from typing import Any
 import numpy as np
 
 from app.cache import LoadedProfile
-from app.dashboard import plots
 from app.store import JobRecord, NameSummary
 
 _CSS = """
@@ -110,6 +113,8 @@ class DashboardRenderer:
         if not data:
             out = "<p class='note'>This profile's report has no plot data.</p>"
         else:
+            from app.dashboard import plots
+
             out = ("<div class='plots'>" + plots.reliability(data) + plots.calibration_curves(data)
                    + plots.residual_plot(data) + "</div><h2>Reliability per class</h2>"
                    + plots.reliability_per_class(data))
@@ -130,10 +135,10 @@ class DashboardRenderer:
 
 
 def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) -> str:
+    from app.bundled_detectors import DetectorUnavailable, detections_of
     from app.calibration import calibrate_frames
-    from app.detect import DetectorUnavailable
+    from app.dashboard import plots
     from app.errors import RequestError
-    from app.routers.detect import detections_of
     from app.schemas.calibrate import FrameIn
     from calibrators.covariance import layer_spread
     from calibrators.ellipse import ellipse

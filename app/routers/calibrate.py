@@ -10,7 +10,7 @@ from fastapi.responses import Response
 from app.body import body_doc, json_body, json_response
 from app.calibration import calibrate_frames
 from app.deps import CacheDep, MetricsDep, SettingsDep
-from app.nuscenes import calibrate_results
+from app.nuscenes_results import calibrate_results
 from app.schemas.calibrate import CalibrateRequest, CalibrateResponse
 from app.schemas.common import ErrorResponse
 from app.schemas.nuscenes import NuScenesResults

@@ -8,17 +8,14 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, Response
 
 from app.body import body_doc, json_body, json_response
-from app.cache import LoadedProfile
+from app.bundled_detectors import DetectorService, DetectorUnavailable, detections_of
 from app.calibration import calibrate_frames
 from app.deps import CacheDep, MetricsDep, SettingsDep
-from app.detect import DetectorOutput, DetectorService, DetectorUnavailable
-from app.errors import RequestError
-from app.schemas.calibrate import DetectionIn, DetectRequest, DetectResponse, FrameIn
+from app.schemas.calibrate import DetectRequest, DetectResponse, FrameIn
 from app.schemas.common import ErrorResponse
 
-router = APIRouter(prefix="/v1", tags=["detect"],
-                   responses={404: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
-                              503: {"model": ErrorResponse}})
+router = APIRouter(prefix="/v1", tags=["detect"], responses={
+    code: {"model": ErrorResponse} for code in (404, 413, 415, 422, 503)})
 
 
 def _detectors(request: Request) -> DetectorService:
@@ -26,25 +23,6 @@ def _detectors(request: Request) -> DetectorService:
 
 
 DetectorsDep = Annotated[DetectorService, Depends(_detectors)]
-
-
-def detections_of(out: DetectorOutput, loaded: LoadedProfile) -> list[DetectionIn]:
-    """Request-shaped detections (per-layer logits and boxes) from raw detector outputs."""
-    prof = loaded.profile
-    if tuple(prof.classes) != out.classes:
-        raise RequestError(["body", "profile"],
-                           f"profile {loaded.record.ref} is for classes {list(prof.classes)} but "
-                           f"the detector predicts {list(out.classes)}")
-    covs = None
-    if prof.cov_source == "given" and len(out.layer_logits):
-        from calibrators.covariance import layer_spread
-
-        covs = layer_spread(out.layer_boxes, dims=tuple(prof.cov_dims)).tolist()
-    logits, boxes = out.layer_logits.tolist(), out.layer_boxes.tolist()
-    return [DetectionIn.model_construct(
-        id=i, logits=None, layer_logits=logits[i], scores=None, score=None, label=None,
-        box=boxes[i][-1], layer_boxes=boxes[i], covariance=None if covs is None else covs[i])
-        for i in range(len(logits))]
 
 
 @router.post("/detect", response_model=DetectResponse, openapi_extra=body_doc(DetectRequest))

@@ -2,23 +2,25 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter
-from fastapi.responses import JSONResponse
+from fastapi import APIRouter, Response
 
 from app.deps import CacheDep, SettingsDep, StoreDep
+from app.schemas.health import Health, Readiness
 from app.store import NotFoundError
 
 router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz")
-def healthz() -> dict[str, str]:
+def healthz() -> Health:
     """The process is up and serving HTTP."""
-    return {"status": "ok"}
+    return Health()
 
 
-@router.get("/readyz", responses={503: {"description": "Not ready; `checks` says why."}})
-def readyz(store: StoreDep, cache: CacheDep, settings: SettingsDep) -> JSONResponse:
+@router.get("/readyz", responses={503: {"model": Readiness,
+                                        "description": "Not ready; `checks` says why."}})
+def readyz(store: StoreDep, cache: CacheDep, settings: SettingsDep, response: Response
+           ) -> Readiness:
     """Ready when the store answers and the default profile's active version is loaded."""
     checks: dict[str, str] = {}
     ok = store.ping()
@@ -31,5 +33,6 @@ def readyz(store: StoreDep, cache: CacheDep, settings: SettingsDep) -> JSONRespo
             ok, checks["profile"] = False, str(exc)
         except ValueError as exc:
             ok, checks["profile"] = False, f"stored profile does not load: {exc}"
-    return JSONResponse({"status": "ready" if ok else "not ready", "checks": checks},
-                        status_code=200 if ok else 503)
+    if not ok:
+        response.status_code = 503
+    return Readiness(status="ready" if ok else "not ready", checks=checks)

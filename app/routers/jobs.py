@@ -12,13 +12,12 @@ from app.schemas.common import ErrorResponse, ProfileRef
 from app.schemas.profiles import JobOut
 from app.store import JobRecord, Store
 
-router = APIRouter(prefix="/v1/jobs", tags=["fit"], responses={404: {"model": ErrorResponse}})
+router = APIRouter(prefix="/v1/jobs", tags=["fit"])
 
 
 def job_out(store: Store, job: JobRecord) -> JobOut:
     """The response body of a job (with the profile's report once it succeeded)."""
-    out = JobOut(**{k: v for k, v in vars(job).items()
-                    if k not in ("profile_id", "profile_version")})
+    out = JobOut.model_validate(job, from_attributes=True)
     if job.profile_version is not None:
         r = store.get(job.name, job.profile_version)
         out.profile = ProfileRef(id=r.ref, name=r.name, version=r.version, sha256=r.sha256)
@@ -29,12 +28,10 @@ def job_out(store: Store, job: JobRecord) -> JobOut:
 @router.get("")
 def list_jobs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=100)] = 20) -> list[JobOut]:
     """The newest fit jobs, newest first (without reports)."""
-    return [JobOut(**{k: v for k, v in vars(j).items()
-                      if k not in ("profile_id", "profile_version")})
-            for j in store.recent_jobs(limit)]
+    return [JobOut.model_validate(j, from_attributes=True) for j in store.recent_jobs(limit)]
 
 
-@router.get("/{job_id}")
+@router.get("/{job_id}", responses={404: {"model": ErrorResponse}})
 def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], store: StoreDep) -> JobOut:
     """State, progress and error of a fit job; its version and report when it succeeded."""
     return job_out(store, store.get_job(job_id))

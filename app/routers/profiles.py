@@ -12,8 +12,8 @@ from app.schemas.common import ErrorResponse, ProfileName
 from app.schemas.profiles import ProfileDetail, ProfileSummary, ProfileVersions, VersionSummary
 from app.store import ProfileRecord
 
-router = APIRouter(prefix="/v1/profiles", tags=["profiles"],
-                   responses={404: {"model": ErrorResponse}})
+router = APIRouter(prefix="/v1/profiles", tags=["profiles"])
+NOT_FOUND = {404: {"model": ErrorResponse}}
 
 Version = Annotated[int, Path(ge=1, description="Version number (1, 2, ...).")]
 
@@ -30,7 +30,7 @@ def list_profiles(store: StoreDep) -> list[ProfileSummary]:
     return [ProfileSummary(**vars(s)) for s in store.names()]
 
 
-@router.get("/{name}")
+@router.get("/{name}", responses=NOT_FOUND)
 def list_versions(name: ProfileName, store: StoreDep) -> ProfileVersions:
     """Every version of one profile name, oldest first."""
     versions = store.versions(name)
@@ -39,7 +39,7 @@ def list_versions(name: ProfileName, store: StoreDep) -> ProfileVersions:
                            versions=[_summary(v) for v in versions])
 
 
-@router.get("/{name}/{version}")
+@router.get("/{name}/{version}", responses=NOT_FOUND)
 def get_version(name: ProfileName, version: Version, store: StoreDep) -> ProfileDetail:
     """One version's parameters and before/after report."""
     r = store.get(name, version)
@@ -47,7 +47,8 @@ def get_version(name: ProfileName, version: Version, store: StoreDep) -> Profile
 
 
 @router.post("/{name}/{version}/activate",
-             responses={401: {"model": ErrorResponse}, 403: {"model": ErrorResponse}})
+             responses={**NOT_FOUND, 401: {"model": ErrorResponse},
+                        403: {"model": ErrorResponse}})
 def activate(name: ProfileName, version: Version, store: StoreDep, _: AdminDep
              ) -> VersionSummary:
     """Make a version the active one of its name, atomically (rolling back = an older one)."""

@@ -2,15 +2,17 @@
 
 from __future__ import annotations
 
-import math
 from typing import Annotated, Self
 
-import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from app.schemas.common import Finite, Probability, ProfileRef
+from calibrators.vocab import BOX_FIELDS, BOX_INDEX
 
 Row = list[Finite]
+#: A box row has every field, or every field up to the velocity.
+_BOX_WIDTHS = (len(BOX_FIELDS), BOX_INDEX["vx"])
+_BOX_TEXT = " ".join(BOX_FIELDS)
 
 _EXAMPLE_DETECTION = {
     "logits": [2.1, -3.0, -4.2, -5.0, -4.1, -3.3, -4.4, -4.9, -5.1, -3.8],
@@ -32,25 +34,14 @@ def _rectangular(name: str, rows: list[list[float]] | None, width: int | None = 
         raise ValueError(f"{name} rows must have {width} values, got {got}")
 
 
-def check_covariance(v: list[list[float]], tol: float = 1e-9) -> None:
-    """Raise a ValueError unless `v` is a square, symmetric, positive semi-definite matrix
-    (2x2 in closed form, the common case; larger ones by eigenvalues)."""
+def _covariance(v: list[list[float]]) -> list[list[float]]:
     _rectangular("covariance", v, len(v))
-    if len(v) == 2:
-        (a, b), (c, d) = v
-        scale = max(abs(a), abs(b), abs(c), abs(d), 1.0)
-        if abs(b - c) > tol * scale:
-            raise ValueError("covariance is not symmetric")
-        low = 0.5 * (a + d) - math.sqrt(0.25 * (a - d) ** 2 + b * b)
-    else:
-        cov = np.asarray(v, dtype=np.float64)
-        scale = max(float(np.abs(cov).max()), 1.0)
-        if np.abs(cov - cov.T).max() > tol * scale:
-            raise ValueError("covariance is not symmetric")
-        low = float(np.linalg.eigvalsh(cov)[0])
-    if low < -tol * scale:
-        raise ValueError(f"covariance is not positive semi-definite (smallest eigenvalue "
-                         f"{low:.3g})")
+    return v
+
+
+#: A `[D, D]` covariance, checked square here; symmetry and positive semi-definiteness are
+#: checked by the library against the profile (`calibrators.checks.check_covariances`).
+Covariance = Annotated[list[Row], AfterValidator(_covariance)]
 
 
 class DetectionIn(BaseModel):
@@ -67,16 +58,19 @@ class DetectionIn(BaseModel):
     score: Probability | None = Field(None, description="Score of `label` only (needs `label`).")
     label: str | Annotated[int, Field(ge=0)] | None = Field(
         None, description="Class name or index; required with `score`.")
-    box: Row | None = Field(None, description="`x y z w l h yaw vx vy` (7 values: no velocity).")
-    layer_boxes: list[Row] | None = Field(None, description="Box of every decoder layer `[L, 9]`.")
-    covariance: list[Row] | None = Field(
+    box: Row | None = Field(None, description=f"`{_BOX_TEXT}` ({_BOX_WIDTHS[1]} values: no "
+                                              "velocity).")
+    layer_boxes: list[Row] | None = Field(
+        None, description=f"Box of every decoder layer `[L, {len(BOX_FIELDS)}]`.")
+    covariance: Covariance | None = Field(
         None, description="Box covariance `[D, D]` over the profile's `cov_dims`.")
 
     @field_validator("box")
     @classmethod
     def _box(cls, v: list[float] | None) -> list[float] | None:
-        if v is not None and len(v) not in (7, 9):
-            raise ValueError(f"box must have 9 values (x y z w l h yaw vx vy) or 7, got {len(v)}")
+        if v is not None and len(v) not in _BOX_WIDTHS:
+            raise ValueError(f"box must have {_BOX_WIDTHS[0]} values ({_BOX_TEXT}) or "
+                             f"{_BOX_WIDTHS[1]}, got {len(v)}")
         return v
 
     @field_validator("layer_logits")
@@ -88,14 +82,7 @@ class DetectionIn(BaseModel):
     @field_validator("layer_boxes")
     @classmethod
     def _layer_boxes(cls, v: list[list[float]] | None) -> list[list[float]] | None:
-        _rectangular("layer_boxes", v, 9)
-        return v
-
-    @field_validator("covariance")
-    @classmethod
-    def _covariance(cls, v: list[list[float]] | None) -> list[list[float]] | None:
-        if v is not None:
-            check_covariance(v)
+        _rectangular("layer_boxes", v, len(BOX_FIELDS))
         return v
 
     @model_validator(mode="after")

@@ -6,9 +6,9 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field
 
-from app.schemas.calibrate import check_covariance
+from app.schemas.calibrate import Covariance
 from app.schemas.common import Finite, Probability
 
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
@@ -43,14 +43,7 @@ class NuScenesBox(BaseModel):
                           "absent: the box is in the ego frame.")
     detection_logits: list[Finite] | None = Field(
         None, min_length=1, description="Raw logits `[C']` (used instead of the score).")
-    covariance: list[list[Finite]] | None = None
-
-    @field_validator("covariance")
-    @classmethod
-    def _covariance(cls, v: list[list[float]] | None) -> list[list[float]] | None:
-        if v is not None:
-            check_covariance(v)
-        return v
+    covariance: Covariance | None = None
 
 
 class NuScenesResults(BaseModel):

@@ -8,6 +8,7 @@ from typing import Any
 from pydantic import BaseModel, Field
 
 from app.schemas.common import ProfileRef
+from app.store.records import JobFields
 
 
 class ProfileSummary(BaseModel):
@@ -57,22 +58,8 @@ class FitAccepted(BaseModel):
     name: str
 
 
-class JobOut(BaseModel):
+class JobOut(JobFields):
     """A fit job's state, progress and, when it succeeded, the version and its report."""
 
-    id: str
-    name: str
-    state: str = Field(description="queued | running | succeeded | failed")
-    progress: float = Field(ge=0.0, le=1.0)
-    stage: str | None
-    error: str | None
-    options: dict[str, Any]
-    dump_sha256: str
-    gt_sha256: str | None
-    activate: bool
-    attempts: int
-    created_at: datetime
-    started_at: datetime | None
-    finished_at: datetime | None
     profile: ProfileRef | None = None
     report: dict[str, Any] | None = None

@@ -3,8 +3,9 @@
 from __future__ import annotations
 
 from datetime import UTC, datetime
+from typing import Annotated
 
-from sqlalchemy import Boolean, DateTime, Float, ForeignKey, Integer, String, Text, UniqueConstraint
+from sqlalchemy import DateTime, Float, ForeignKey, String, Text, UniqueConstraint
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 
@@ -13,8 +14,17 @@ def utcnow() -> datetime:
     return datetime.now(UTC)
 
 
+#: A timestamp set to the current time when the row is inserted.
+Created = Annotated[datetime, mapped_column(default=utcnow)]
+#: A sha256 hex digest.
+Sha256 = Annotated[str, mapped_column(String(64))]
+
+
 class Base(DeclarativeBase):
-    """Declarative base of every detcal table."""
+    """Declarative base of every detcal table: every timestamp is stored with its time zone
+    (`int` and `bool` map to Integer and Boolean)."""
+
+    type_annotation_map = {datetime: DateTime(timezone=True)}
 
 
 class ProfileRow(Base):
@@ -23,14 +33,14 @@ class ProfileRow(Base):
     __tablename__ = "profiles"
     __table_args__ = (UniqueConstraint("name", "version", name="uq_profile_name_version"),)
 
-    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
     name: Mapped[str] = mapped_column(String(64), index=True)
-    version: Mapped[int] = mapped_column(Integer)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    version: Mapped[int]
+    created_at: Mapped[Created]
     json: Mapped[str] = mapped_column(Text)
-    sha256: Mapped[str] = mapped_column(String(64))
-    dump_sha256: Mapped[str | None] = mapped_column(String(64), nullable=True)
-    job_id: Mapped[str | None] = mapped_column(String(32), nullable=True)
+    sha256: Mapped[Sha256]
+    dump_sha256: Mapped[str | None] = mapped_column(String(64))
+    job_id: Mapped[str | None] = mapped_column(String(32))
 
 
 class ActiveRow(Base):
@@ -40,8 +50,8 @@ class ActiveRow(Base):
 
     name: Mapped[str] = mapped_column(String(64), primary_key=True)
     profile_id: Mapped[int] = mapped_column(ForeignKey("profiles.id"))
-    version: Mapped[int] = mapped_column(Integer)
-    activated_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    version: Mapped[int]
+    activated_at: Mapped[Created]
 
 
 class DumpRow(Base):
@@ -49,10 +59,10 @@ class DumpRow(Base):
 
     __tablename__ = "dumps"
 
-    sha256: Mapped[str] = mapped_column(String(64), primary_key=True)
+    sha256: Mapped[Sha256] = mapped_column(primary_key=True)
     kind: Mapped[str] = mapped_column(String(32))
-    size: Mapped[int] = mapped_column(Integer)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
+    size: Mapped[int]
+    created_at: Mapped[Created]
 
 
 class JobRow(Base):
@@ -64,15 +74,15 @@ class JobRow(Base):
     name: Mapped[str] = mapped_column(String(64))
     state: Mapped[str] = mapped_column(String(16), index=True)
     progress: Mapped[float] = mapped_column(Float, default=0.0)
-    stage: Mapped[str | None] = mapped_column(String(200), nullable=True)
-    error: Mapped[str | None] = mapped_column(Text, nullable=True)
+    stage: Mapped[str | None] = mapped_column(String(200))
+    error: Mapped[str | None] = mapped_column(Text)
     options: Mapped[str] = mapped_column(Text)
     dump_sha256: Mapped[str] = mapped_column(ForeignKey("dumps.sha256"))
-    gt_sha256: Mapped[str | None] = mapped_column(ForeignKey("dumps.sha256"), nullable=True)
-    activate: Mapped[bool] = mapped_column(Boolean, default=False)
-    attempts: Mapped[int] = mapped_column(Integer, default=0)
-    created_at: Mapped[datetime] = mapped_column(DateTime(timezone=True), default=utcnow)
-    started_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
-    finished_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
-    heartbeat_at: Mapped[datetime | None] = mapped_column(DateTime(timezone=True), nullable=True)
-    profile_id: Mapped[int | None] = mapped_column(ForeignKey("profiles.id"), nullable=True)
+    gt_sha256: Mapped[str | None] = mapped_column(ForeignKey("dumps.sha256"))
+    activate: Mapped[bool] = mapped_column(default=False)
+    attempts: Mapped[int] = mapped_column(default=0)
+    created_at: Mapped[Created]
+    started_at: Mapped[datetime | None]
+    finished_at: Mapped[datetime | None]
+    heartbeat_at: Mapped[datetime | None]
+    profile_id: Mapped[int | None] = mapped_column(ForeignKey("profiles.id"))

@@ -7,6 +7,8 @@ from dataclasses import dataclass
 from datetime import UTC, datetime
 from typing import Any
 
+from pydantic import BaseModel, ConfigDict, Field
+
 JOB_STATES = ("queued", "running", "succeeded", "failed")
 
 
@@ -61,14 +63,13 @@ class DumpRecord:
     created: bool
 
 
-@dataclass(frozen=True)
-class JobRecord:
-    """A fit job and, when it succeeded, the profile version it wrote."""
+class JobFields(BaseModel):
+    """A fit job's public fields, defined once: what the store hands out and the API returns."""
 
     id: str
     name: str
-    state: str
-    progress: float
+    state: str = Field(description=" | ".join(JOB_STATES))
+    progress: float = Field(ge=0.0, le=1.0)
     stage: str | None
     error: str | None
     options: dict[str, Any]
@@ -79,6 +80,13 @@ class JobRecord:
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+
+
+class JobRecord(JobFields):
+    """A fit job and, when it succeeded, the profile version it wrote."""
+
+    model_config = ConfigDict(frozen=True)
+
     profile_id: int | None
     profile_version: int | None
 

@@ -101,6 +101,10 @@ CASES = [
          '"covariance":[[1,0],[0,1]]}]}}'), JSON, 422, "unknown class"),
     ("nuscenes-missing-results", "POST", "/v1/calibrate/nuscenes", raw('{"meta": {}}'), JSON,
      422, "results"),
+    ("nuscenes-zero-rotation", "POST", "/v1/calibrate/nuscenes",
+     raw('{"results":{"t":[{"sample_token":"t","translation":[1,2,0],"size":[2,4,1.5],'
+         '"rotation":[0,0,0,0],"detection_name":"car","detection_score":0.5,'
+         '"covariance":[[1,0],[0,1]]}]}}'), JSON, 422, '"loc":["body","results","t",0,"rotation"]'),
     ("detect-unknown-sensor", "POST", "/v1/detect", raw('{"sensor": "sonar", "seed": 1}'), JSON,
      None, None),
     ("detect-seed-and-points", "POST", "/v1/detect",

@@ -205,9 +205,9 @@ def test_no_ellipses_without_x_and_y():
     ({"logits": np.zeros((3, 3))}, "logits has 3 columns but the profile's softmax mode with "
                                    "3 classes needs 4"),
     ({"logits": np.zeros((3, 4)), "covariances": np.tile(np.eye(3), (3, 1, 1))},
-     "covariances must be 2x2"),
-    ({"logits": np.zeros((3, 4))}, r"covariances \(the profile's cov_source is 'given'\) is "
-                                   "required"),
+     r"covariances are 3x3 but the profile's cov_dims \['x', 'y'\] need 2x2"),
+    ({"logits": np.zeros((3, 4))}, r"covariances are required: the profile was fit on given "
+                                   r"covariances \(cov_source 'given'\)"),
     ({"logits": np.zeros((3, 4)), "scores": np.zeros(3)}, "either logits or scores"),
     ({}, "either logits or scores"),
     ({"scores": np.full(3, 0.5)}, r"labels \(with scores\) is required"),
