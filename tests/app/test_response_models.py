@@ -8,7 +8,7 @@ against `route.response_model` (success), `route.responses[status]["model"]`, or
 without one, fails `test_every_route_and_declared_status_has_a_case`.
 
 The fit-job runner is not started (the cases look at responses, not fits) and the bundled
-detector is a stub returning outputs of the synthetic dump (no torch).
+detector is the real bundled lidar detector (torch, CPU).
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from fastapi.routing import APIRoute
 from fastapi.testclient import TestClient
 from pydantic import TypeAdapter
 
-from app.bundled_detectors import DetectorOutput, DetectorUnavailable
+from app.bundled_detectors import DetectorService
 from app.jobs import JobRunner
 from app.main import create_app
 from app.schemas.common import ErrorResponse
@@ -103,26 +103,6 @@ class World:
         return {"files": {"dump": ("val.npz", self.npz)}}
 
 
-class StubDetectors:
-    """The bundled-detector service, answering with the first detections of a dump."""
-
-    def __init__(self, dump: Any, reason: str | None = None) -> None:
-        self.reason = reason
-        self.out = DetectorOutput(
-            layer_logits=dump.det_logits[:5], layer_boxes=dump.det_boxes[:5],
-            points=np.zeros((0, 4), dtype=np.float32), gt_boxes=dump.gt_boxes[:2],
-            gt_labels=dump.gt_labels[:2], classes=tuple(dump.classes))
-
-    def available(self) -> str | None:
-        return self.reason
-
-    def run(self, sensor: str, seed: int | None = None, points: Any = None,
-            min_score: float = 0.3) -> DetectorOutput:
-        if self.reason is not None:
-            raise DetectorUnavailable(self.reason)
-        return self.out
-
-
 @dataclass(frozen=True)
 class Case:
     """One request: `path` is the route's template, `request(world)` the TestClient kwargs
@@ -133,7 +113,7 @@ class Case:
     status: int
     request: Callable[[World], dict]
     client: str = "seeded"
-    detectors: str | None = None   # "unavailable": the stub detector service answers 503
+    detectors: str | None = None   # "unavailable": no weights, the detector service answers 503
 
 
 def url(u: str, **kw: Any) -> Callable[[World], dict]:
@@ -229,7 +209,6 @@ def world(tmp_path_factory, dump_given, detection, npz_bytes, profile_json_given
         clients = {}
         for kind, s in settings.items():
             app = create_app(s)
-            app.state.detectors = StubDetectors(dump_given)
             clients[kind] = stack.enter_context(TestClient(app, raise_server_exceptions=False))
         yield World(clients, dump_given, detection, npz_bytes, job.id)
 
@@ -241,11 +220,14 @@ def _route(app: FastAPI, method: str, path: str) -> Any:
 
 
 @pytest.mark.parametrize("case", CASES, ids=[f"{c.method} {c.path} {c.status}" for c in CASES])
-def test_response_validates_against_the_declared_model(world, case):
+def test_response_validates_against_the_declared_model(world, case, monkeypatch, tmp_path):
     client = world.clients[case.client]
     route = _route(client.app, case.method, case.path)
-    stub = client.app.state.detectors
-    stub.reason = "no detectors here (stub)" if case.detectors == "unavailable" else None
+    if case.detectors == "unavailable":   # the real service, its weights folder empty
+        from detectors import registry
+
+        monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
+        monkeypatch.setattr(client.app.state, "detectors", DetectorService())
     kwargs = case.request(world)
     r = client.request(case.method, **kwargs)
     assert r.status_code == case.status, r.text
