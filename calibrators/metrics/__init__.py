@@ -16,6 +16,14 @@ from calibrators.metrics.curves import (
     miscalibration_area,
 )
 from calibrators.metrics.detection import detection_ece
+from calibrators.metrics.regions import (
+    CoverageTable,
+    EllipseCoverage,
+    classwise_ece,
+    coverage_table,
+    ellipse_coverage,
+    mean_ellipse_area,
+)
 from calibrators.metrics.regression import (
     Coverage,
     ResidualPlot,
@@ -30,17 +38,23 @@ from calibrators.metrics.scoring import brier_score, classification_nll
 __all__ = [
     "CalibrationCurve",
     "Coverage",
+    "CoverageTable",
+    "EllipseCoverage",
     "ReliabilityDiagram",
     "ResidualPlot",
     "average_calibration_curve",
     "brier_score",
     "classification_nll",
+    "classwise_ece",
     "coverage",
+    "coverage_table",
     "detection_ece",
+    "ellipse_coverage",
     "expected_calibration_error",
     "expected_mahalanobis",
     "mahalanobis",
     "max_calibration_error",
+    "mean_ellipse_area",
     "miscalibration_area",
     "regression_nll",
     "reliability_diagram",

@@ -1,0 +1,307 @@
+"""Split-conformal radii for the Mahalanobis distance, per class × distance bin (Mondrian).
+
+On a calibration part of the val dump disjoint from what `Σ'` was fit on, each true positive
+has a score `m = sqrt(rᵀ Σ'⁻¹ r)`. For a group of `n` exchangeable scores, the radius at
+level `q` is the `⌈(n+1)·q⌉`-th smallest score (inf when that rank exceeds n), and a new
+point of the group falls within it with probability >= q (and < q + 1/(n+1) without ties).
+
+Groups: class × distance bin (`calibrators.levels`). A cell with fewer than `min_group`
+scores serves from a window of neighbouring bins of its class, grown one bin at a time
+towards the fuller neighbour (ties: nearer the ego) until it holds `min_group`; a class too
+small as a whole serves from all classes of that bin, and if that is too small too, from all
+scores. Each cell records the group serving it and why ("own", "merged_bins",
+"pooled_classes", "global"); a class unseen at fit is served as a class with no scores.
+
+Each group stores its order statistics at a set of ranks: all of them for `n <= n_exact`,
+else at most `max_ranks`, every rank in the top tail and then spaced by at most 3 % of the
+tail mass above and 0.4 % of n. A level whose exact rank is not stored is served by the next
+stored rank above (conservative: never a smaller radius, at most that spacing more coverage).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Hashable, Sequence
+from typing import Any
+
+import numpy as np
+
+from calibrators.checks import as_float_array, check_length
+from calibrators.depth import _check_distances, _class_codes
+from calibrators.exceptions import FieldError, check_fitted
+from calibrators.levels import (
+    DEFAULT_DISTANCE_EDGES,
+    check_distance_edges,
+    check_levels,
+    distance_bins,
+)
+from calibrators.metrics._common import check_n_bins, check_nonempty
+from calibrators.vocab import to_jsonable
+
+REASONS = ("own", "merged_bins", "pooled_classes", "global")
+_TAIL_STEP, _BULK_STEP = 0.03, 0.004  # rank spacing: of the tail mass above, of n
+
+
+@dataclasses.dataclass(frozen=True)
+class ConformalGroup:
+    """The scores of one group: `label` (None = all classes), distance `bins` (lo, hi)
+    inclusive, `n` scores, and their order statistics `values [R]` at `ranks [R]`
+    (1-based, increasing, always including n)."""
+
+    label: Hashable | None
+    bins: tuple[int, int]
+    n: int
+    ranks: np.ndarray
+    values: np.ndarray
+
+    def radius(self, levels: np.ndarray) -> np.ndarray:
+        """Radii `[Q]` at checked `levels [Q]`: the stored order statistic at the first stored
+        rank >= ⌈(n+1)·q⌉ (rank computed to 1e-9), inf beyond rank n."""
+        rank = np.ceil(np.round((self.n + 1) * levels, 9)).astype(np.int64)
+        idx = np.searchsorted(self.ranks, rank, side="left")
+        out = np.full(levels.shape, np.inf)
+        ok = rank <= self.n
+        out[ok] = self.values[idx[ok]]
+        return out
+
+
+class ConformalRegions:
+    """Split-conformal Mahalanobis radii per class × distance bin (module docstring).
+
+    Parameters
+    ----------
+    distance_edges : increasing bin edges in m (>= 0; the last may be inf).
+    min_group : scores a group needs (>= 1); 99 make the 0.99 radius finite.
+    n_exact : groups with at most this many scores store every order statistic
+        (<= max_ranks).
+    max_ranks : the most order statistics a larger group stores (>= 100).
+
+    Attributes set by `fit`: `classes_` (list), `edges_ [B + 1]`, `counts_ [C, B]` (scores
+    per cell), `groups_` (list of `ConformalGroup`), `serving_ [C + 1, B]` (group index per
+    cell; the last row serves unseen classes), `reasons_` (list [C + 1] of lists [B]).
+    """
+
+    def __init__(self, distance_edges: Sequence[float] = DEFAULT_DISTANCE_EDGES,
+                 min_group: int = 100, n_exact: int = 500, max_ranks: int = 600) -> None:
+        self.distance_edges = distance_edges
+        self.min_group = min_group
+        self.n_exact = n_exact
+        self.max_ranks = max_ranks
+
+    def fit(self, scores: np.ndarray, classes: np.ndarray, distances: np.ndarray,
+            all_classes: Sequence[Hashable] | None = None) -> ConformalRegions:
+        """Fit on `scores [M]` (Mahalanobis distances >= 0 of calibration true positives),
+        `classes [M]` (labels, e.g. ints or names), `distances [M]` (m); `all_classes`
+        lists every class to serve (default: those in `classes`). Returns self."""
+        edges = check_distance_edges(self.distance_edges)
+        min_group = check_n_bins("min_group", self.min_group, minimum=1)
+        n_exact = check_n_bins("n_exact", self.n_exact, minimum=1)
+        max_ranks = check_n_bins("max_ranks", self.max_ranks, minimum=100)
+        if n_exact > max_ranks:
+            raise FieldError("n_exact", f"n_exact ({n_exact}) must be <= max_ranks ({max_ranks})")
+        s = as_float_array("scores", scores, ndim=1)
+        check_nonempty("scores", s)
+        if (s < 0).any():
+            i = int(np.argmax(s < 0))
+            raise FieldError("scores", f"scores[{i}] = {s[i]} is negative (a Mahalanobis "
+                             "distance)", row=i)
+        d = _check_distances(distances, None)
+        check_length("distances", d, s.shape[0], "scores")
+        keys, codes = _class_codes(classes, s.shape[0])
+        known = keys if all_classes is None else _all_classes(all_classes, keys)
+        position = {key: i for i, key in enumerate(known)}
+        cls = np.array([position[key] for key in keys], dtype=np.int64)[codes]
+        bins = distance_bins(d, edges)
+        n_bins = edges.size - 1
+        counts = np.zeros((len(known), n_bins), dtype=np.int64)
+        np.add.at(counts, (cls, bins), 1)
+
+        index: dict[tuple, int] = {}
+        self.groups_: list[ConformalGroup] = []
+        rows = [*counts, np.zeros(n_bins, dtype=np.int64)]  # the last: an unseen class
+        serving = np.zeros((len(rows), n_bins), dtype=np.int64)
+        self.reasons_ = []
+        for c, row in enumerate(rows):
+            reasons = []
+            for b in range(n_bins):
+                key, reason = _serving_group(c, b, row, counts.sum(axis=0), min_group)
+                if key not in index:
+                    index[key] = len(self.groups_)
+                    self.groups_.append(_group(key, known, s, cls, bins, n_exact, max_ranks))
+                serving[c, b] = index[key]
+                reasons.append(reason)
+            self.reasons_.append(reasons)
+        self.classes_, self.edges_, self.counts_, self.serving_ = known, edges, counts, serving
+        return self
+
+    def radii(self, levels: Sequence[float], classes: np.ndarray, distances: np.ndarray
+              ) -> np.ndarray:
+        """Radii `[N, Q]` at `levels [Q]` for detections of `classes [N]` at `distances [N]`."""
+        check_fitted(self, "serving_")
+        q = check_levels(levels)
+        table = np.stack([g.radius(q) for g in self.groups_])  # [G, Q]
+        return table[self._group_of(classes, distances)]
+
+    def radius(self, level: float, classes: np.ndarray, distances: np.ndarray) -> np.ndarray:
+        """Radii `[N]` at one `level` in (0, 1)."""
+        q = check_levels(level, "level")
+        if q.size != 1:
+            raise FieldError("level", f"level must be one number in (0, 1), got {q.size} of them")
+        return self.radii(q, classes, distances)[:, 0]
+
+    def groups(self, classes: np.ndarray, distances: np.ndarray) -> list[dict[str, Any]]:
+        """The group serving each detection `[N]` as `{"class", "bins", "n", "reason"}`."""
+        check_fitted(self, "serving_")
+        cls, bins = self._cells(classes, distances)
+        return [{**self._describe(int(self.serving_[c, b])), "reason": self.reasons_[c][b]}
+                for c, b in zip(cls.tolist(), bins.tolist(), strict=True)]
+
+    def serving_table(self) -> list[dict[str, Any]]:
+        """One row per class × bin: scores in the cell, the serving group and why (plain JSON
+        types; an inf distance edge is None)."""
+        check_fitted(self, "serving_")
+        return to_jsonable([
+            {"class": label, "bin": b, "distance_range": self.edges_[b:b + 2].tolist(),
+             "count": int(self.counts_[c, b]), "reason": self.reasons_[c][b],
+             **self._describe(int(self.serving_[c, b]), prefix="group_")}
+            for c, label in enumerate(self.classes_) for b in range(self.edges_.size - 1)])
+
+    def to_dict(self) -> dict[str, Any]:
+        """Strict-JSON-able plain dict (an inf edge is None); `from_dict` serves identically."""
+        check_fitted(self, "serving_")
+        return to_jsonable({
+            "hyper": {"distance_edges": list(self.distance_edges), "min_group": self.min_group,
+                      "n_exact": self.n_exact, "max_ranks": self.max_ranks},
+            "classes": self.classes_, "distance_edges": self.edges_, "counts": self.counts_,
+            "groups": [{"class": g.label, "bins": list(g.bins), "n": g.n, "ranks": g.ranks,
+                        "values": g.values} for g in self.groups_],
+            "serving": self.serving_, "reasons": self.reasons_,
+        })
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ConformalRegions:
+        """The fitted regions `to_dict` wrote; ValueError naming a missing or bad key."""
+        if not isinstance(data, dict):
+            raise ValueError(f"conformal regions must be a dict, got {type(data).__name__}")
+        missing = [k for k in ("hyper", "classes", "distance_edges", "counts", "groups",
+                               "serving", "reasons") if k not in data]
+        if missing:
+            raise ValueError(f"conformal regions dict lacks {missing[0]!r}")
+        hyper = dict(data["hyper"])
+        hyper["distance_edges"] = tuple(_inf(v) for v in hyper.get("distance_edges", ()))
+        try:
+            self = cls(**hyper)
+        except TypeError as exc:
+            raise ValueError(f"hyper has a bad key: {exc}") from None
+        self.classes_ = list(data["classes"])
+        self.edges_ = check_distance_edges([_inf(v) for v in data["distance_edges"]])
+        self.counts_ = np.asarray(data["counts"], dtype=np.int64).reshape(
+            len(self.classes_), self.edges_.size - 1)
+        self.groups_ = [_group_from_dict(i, g) for i, g in enumerate(data["groups"])]
+        self.serving_ = np.asarray(data["serving"], dtype=np.int64)
+        if (self.serving_.shape != (len(self.classes_) + 1, self.edges_.size - 1)
+                or (self.serving_ < 0).any() or (self.serving_ >= len(self.groups_)).any()):
+            raise ValueError("serving must be [C + 1, B] indices of groups")
+        self.reasons_ = [list(r) for r in data["reasons"]]
+        if any(r not in REASONS for row in self.reasons_ for r in row):
+            raise ValueError(f"reasons must be among {list(REASONS)}")
+        return self
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _cells(self, classes: np.ndarray, distances: np.ndarray
+               ) -> tuple[np.ndarray, np.ndarray]:
+        d = _check_distances(distances, None)
+        keys, codes = _class_codes(classes, d.shape[0])
+        position = {key: i for i, key in enumerate(self.classes_)}
+        unseen = len(self.classes_)
+        cls = np.array([position.get(key, unseen) for key in keys], dtype=np.int64)
+        return (cls[codes] if d.size else np.zeros(0, dtype=np.int64)), distance_bins(
+            d, self.edges_)
+
+    def _group_of(self, classes: np.ndarray, distances: np.ndarray) -> np.ndarray:
+        cls, bins = self._cells(classes, distances)
+        return self.serving_[cls, bins]
+
+    def _describe(self, g: int, prefix: str = "") -> dict[str, Any]:
+        group = self.groups_[g]
+        return {f"{prefix}class": group.label, f"{prefix}bins": list(group.bins),
+                f"{prefix}n": group.n}
+
+
+def _serving_group(c: int, b: int, row: np.ndarray, all_counts: np.ndarray, min_group: int
+                   ) -> tuple[tuple, str]:
+    """(group key, reason) serving cell (class c, bin b), from the class's counts `row [B]`
+    and all classes' `all_counts [B]`. Keys: ("class", c, lo, hi) or ("all", lo, hi)."""
+    if row[b] >= min_group:
+        return ("class", c, b, b), "own"
+    lo = hi = b
+    total = int(row[b])
+    while total < min_group and (lo > 0 or hi < row.size - 1):
+        left = row[lo - 1] if lo > 0 else -1
+        right = row[hi + 1] if hi < row.size - 1 else -1
+        if left >= right:
+            lo -= 1
+            total += int(left)
+        else:
+            hi += 1
+            total += int(right)
+    if total >= min_group:
+        return ("class", c, lo, hi), "merged_bins"
+    if all_counts[b] >= min_group:
+        return ("all", b, b), "pooled_classes"
+    return ("all", 0, row.size - 1), "global"
+
+
+def _group(key: tuple, known: list, s: np.ndarray, cls: np.ndarray, bins: np.ndarray,
+           n_exact: int, max_ranks: int) -> ConformalGroup:
+    """The stored table of the group `key` (see `_serving_group`)."""
+    lo, hi = key[-2:]
+    mask = (bins >= lo) & (bins <= hi)
+    if key[0] == "class":
+        mask &= cls == key[1]
+    values = np.sort(s[mask])
+    ranks = _stored_ranks(values.size, n_exact, max_ranks)
+    label = known[key[1]] if key[0] == "class" else None
+    return ConformalGroup(label, (int(lo), int(hi)), int(values.size), ranks, values[ranks - 1])
+
+
+def _stored_ranks(n: int, n_exact: int, max_ranks: int) -> np.ndarray:
+    """Ranks `[R]` (1-based, increasing) to store for n scores (module docstring): all for
+    n <= n_exact; else walking down from n in steps of max(1, min(t·u, b·n)) with u the ranks
+    above, t and b widened by 1.25x until at most `max_ranks` remain."""
+    if n <= n_exact:
+        return np.arange(1, n + 1, dtype=np.int64)
+    tail, bulk = _TAIL_STEP, _BULK_STEP
+    while True:
+        above, out = 0, []
+        while above < n and len(out) <= max_ranks:
+            out.append(n - above)
+            above += max(1, int(min(tail * above, bulk * n)))
+        if out[-1] != 1:
+            out.append(1)
+        if len(out) <= max_ranks:
+            return np.array(out[::-1], dtype=np.int64)
+        tail, bulk = tail * 1.25, bulk * 1.25
+
+
+def _all_classes(all_classes: Sequence[Hashable], seen: list) -> list:
+    known = list(all_classes.tolist() if isinstance(all_classes, np.ndarray) else all_classes)
+    if len(set(known)) != len(known):
+        raise FieldError("all_classes", "all_classes must list each class once")
+    missing = [key for key in seen if key not in set(known)]
+    if missing:
+        raise FieldError("classes", f"classes holds {missing[0]!r}, which is not in all_classes")
+    return known
+
+
+def _group_from_dict(i: int, g: dict[str, Any]) -> ConformalGroup:
+    ranks = np.asarray(g["ranks"], dtype=np.int64)
+    values = as_float_array(f"groups[{i}].values", g["values"], ndim=1)
+    n = int(g["n"])
+    if ranks.shape != values.shape or (n and (ranks[-1] != n or (np.diff(ranks) <= 0).any())):
+        raise ValueError(f"groups[{i}] must have increasing ranks ending at n, one value each")
+    return ConformalGroup(g["class"], (int(g["bins"][0]), int(g["bins"][1])), n, ranks, values)
+
+
+def _inf(value: Any) -> float:
+    return float("inf") if value is None else float(value)

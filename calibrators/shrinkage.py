@@ -1,0 +1,245 @@
+"""Shrinkage depth scaling: `Σ' = s_c · Σ + k_c · d · I` with `s_c > 0`, `k_c >= 0` per class.
+
+Detectors often over-state their spread near the ego and under-state it far away; one
+additive `k` (`calibrators.depth`, the case `s = 1`) cannot fix both, a scale of `Σ` plus a
+range term can. `(s_c, k_c)` minimise the mean Gaussian NLL of the class's matched residuals:
+bounded Brent on `log s`, and for each `s` the depth-scaling Brent on `k`.
+
+Each evaluation reuses depth scaling's binned statistics, built once. With `Σ = U Λ Uᵀ`,
+`a = λ/d`, `b = (Uᵀr)²/d`, a term `log(sλ + kd) + q/(sλ + kd)` equals
+`log d + log s + log(a + k/s) + (b/s)/(a + k/s)`, so the NLL at `(s, k)` is depth scaling's
+binned NLL at `k' = k/s` with every `b` divided by `s` and `D·log s` added per sample; a
+sample at `d = 0` contributes `log(sλ) + q/(sλ)`, whose `q/λ` sum is kept apart. Each step
+is O(bins). `Σ = None` (`Σ = 0`) leaves `s` undefined: it is 1, and the fit is depth scaling.
+Classes with fewer than `min_samples` residuals take the pooled `(s, k)`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+from collections.abc import Hashable
+from typing import Any
+
+import numpy as np
+from scipy.optimize import minimize_scalar
+
+from calibrators.checks import as_float_array, as_int_array
+from calibrators.depth import (
+    _Binned,
+    _binned,
+    _check_bounds,
+    _check_cov,
+    _check_distances,
+    _check_min_samples,
+    _class_codes,
+    _fit_k,
+    _Terms,
+    add_depth_term,
+)
+from calibrators.exceptions import FieldError, check_fitted
+from calibrators.vocab import to_jsonable
+
+
+class ShrinkageDepthScaler:
+    """Fit `(s_c, k_c)` per class so that `s_c·Σ + k_c·d·I` explains the residuals.
+
+    Parameters
+    ----------
+    min_samples : a class with fewer residuals than this takes the pooled `(s, k)`.
+    bounds : (low, high) search interval for `k`, 0 <= low < high (widened as in
+        `DepthScaler`).
+    scale_bounds : (low, high) search interval for `s`, 0 < low <= high; low == high fixes
+        `s` (`(1, 1)` is `DepthScaler`).
+    xtol : Brent's absolute tolerance on `log s` and on `log k`.
+
+    Attributes set by `fit`: `s_`, `k_` (dicts class -> value), `pooled_s_`, `pooled_k_`,
+    `fallback_classes_` (classes that took the pooled pair), `n_samples_` (dict class ->
+    count), `n_dims_` (D), `nll_` (dict class -> exact mean NLL at its own pair, None for
+    fallback classes), `pooled_nll_`.
+    """
+
+    def __init__(self, min_samples: int = 50, bounds: tuple[float, float] = (0.0, 25.0),
+                 scale_bounds: tuple[float, float] = (1e-2, 1e2), xtol: float = 1e-7) -> None:
+        self.min_samples = min_samples
+        self.bounds = bounds
+        self.scale_bounds = scale_bounds
+        self.xtol = xtol
+
+    def fit(self, residuals: np.ndarray, covariances: np.ndarray | None,
+            distances: np.ndarray, classes: np.ndarray) -> ShrinkageDepthScaler:
+        """Fit on `residuals [N, D]`, `covariances [N, D, D] | None`, `distances [N]` (>= 0)
+        and `classes [N]` (hashable labels, e.g. ints or strs); returns self."""
+        min_samples = _check_min_samples(self.min_samples)
+        bounds = _check_bounds(self.bounds)
+        scale_bounds = _check_scale_bounds(self.scale_bounds)
+        r = as_float_array("residuals", residuals, ndim=2)
+        if r.shape[0] == 0 or r.shape[1] == 0:
+            raise FieldError("residuals", f"residuals is empty (shape {r.shape}): need [N, D] "
+                                          "with N, D >= 1")
+        n, dim = r.shape
+        cov = _check_cov(covariances, n, dim, full=False)
+        d = _check_distances(distances, n)
+        keys, codes = _class_codes(classes, n)
+        terms = _Terms.build(r, cov, d)
+        groups, pooled = _binned(terms, codes, len(keys))
+        near_q = _near_q(terms, codes, len(keys))
+        fit = _PairFit(bounds, (1.0, 1.0) if cov is None else scale_bounds, float(self.xtol))
+
+        pooled_s, pooled_k = fit(pooled, float(near_q.sum()), "pooled")
+        s_of, k_of = np.full(len(keys), pooled_s), np.full(len(keys), pooled_k)
+        self.n_samples_, self.fallback_classes_ = {}, []
+        for g, (key, stats) in enumerate(zip(keys, groups, strict=True)):
+            self.n_samples_[key] = stats.n
+            if stats.n < min_samples:
+                self.fallback_classes_.append(key)
+            else:
+                s_of[g], k_of[g] = fit(stats, float(near_q[g]), key)
+        self.s_ = {key: float(s_of[g]) for g, key in enumerate(keys)}
+        self.k_ = {key: float(k_of[g]) for g, key in enumerate(keys)}
+        exact = _scaled_terms(terms, s_of[codes]).group_nll(k_of, codes)
+        self.nll_ = {key: (None if key in self.fallback_classes_ else float(exact[g]))
+                     for g, key in enumerate(keys)}
+        self.pooled_s_, self.pooled_k_ = pooled_s, pooled_k
+        self.pooled_nll_ = _scaled_terms(terms, np.full(n, pooled_s)).nll(pooled_k)
+        self.n_dims_ = dim
+        return self
+
+    def transform(self, covariances: np.ndarray | None, distances: np.ndarray,
+                  classes: np.ndarray) -> np.ndarray:
+        """`s_c·Σ + k_c·d·I` `[N, D, D]`; a class never seen in fit takes the pooled pair."""
+        check_fitted(self, "k_")
+        d = _check_distances(distances, None)
+        n = d.shape[0]
+        cov = _check_cov(covariances, n, self.n_dims_)
+        keys, codes = _class_codes(classes, n)
+        s_rows = np.array([self.s_.get(key, self.pooled_s_) for key in keys], dtype=np.float64)
+        k_rows = np.array([self.k_.get(key, self.pooled_k_) for key in keys], dtype=np.float64)
+        if cov is None:
+            base = np.zeros((n, self.n_dims_, self.n_dims_))
+        else:
+            base = cov * (s_rows[codes] if n else np.zeros(0))[:, None, None]
+        return add_depth_term(base, d, k_rows[codes] if n else np.zeros(0))
+
+    def to_dict(self) -> dict[str, Any]:
+        """Strict-JSON-able plain dict; `from_dict(to_dict())` transforms identically."""
+        check_fitted(self, "k_")
+        keys = list(self.k_)
+        return to_jsonable({
+            "hyper": {"min_samples": self.min_samples, "bounds": self.bounds,
+                      "scale_bounds": self.scale_bounds, "xtol": self.xtol},
+            "classes": keys, "s": [self.s_[c] for c in keys], "k": [self.k_[c] for c in keys],
+            "pooled_s": self.pooled_s_, "pooled_k": self.pooled_k_,
+            "fallback_classes": self.fallback_classes_,
+            "n_samples": [self.n_samples_[c] for c in keys], "n_dims": self.n_dims_,
+            "nll": [self.nll_[c] for c in keys], "pooled_nll": self.pooled_nll_,
+        })
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ShrinkageDepthScaler:
+        """The fitted scaler `to_dict` wrote; ValueError naming a missing or bad key."""
+        if not isinstance(data, dict):
+            raise ValueError(f"a shrinkage scaler must be a dict, got {type(data).__name__}")
+        missing = [k for k in ("hyper", "classes", "s", "k", "pooled_s", "pooled_k",
+                               "fallback_classes", "n_samples", "n_dims") if k not in data]
+        if missing:
+            raise ValueError(f"shrinkage scaler dict lacks {missing[0]!r}")
+        hyper = {k: tuple(v) if isinstance(v, list) else v for k, v in data["hyper"].items()}
+        try:
+            self = cls(**hyper)
+        except TypeError as exc:
+            raise ValueError(f"hyper has a bad key: {exc}") from None
+        keys = list(data["classes"])
+        s = as_float_array("s", data["s"], ndim=1)
+        k = as_float_array("k", data["k"], ndim=1)
+        n_samples = as_int_array("n_samples", data["n_samples"])
+        for name, arr in (("s", s), ("k", k), ("n_samples", n_samples)):
+            if arr.shape[0] != len(keys):
+                raise ValueError(f"{name} has {arr.shape[0]} entries but classes has "
+                                 f"{len(keys)}")
+        if (s <= 0).any() or (k < 0).any():
+            raise ValueError("s must be > 0 and k >= 0 for every class")
+        self.s_ = dict(zip(keys, s.tolist(), strict=True))
+        self.k_ = dict(zip(keys, k.tolist(), strict=True))
+        self.pooled_s_ = float(as_float_array("pooled_s", data["pooled_s"], ndim=0))
+        self.pooled_k_ = float(as_float_array("pooled_k", data["pooled_k"], ndim=0))
+        self.fallback_classes_ = list(data["fallback_classes"])
+        self.n_samples_ = dict(zip(keys, n_samples.tolist(), strict=True))
+        self.n_dims_ = int(data["n_dims"])
+        nll = data.get("nll") or [None] * len(keys)
+        self.nll_ = dict(zip(keys, nll, strict=True))
+        self.pooled_nll_ = data.get("pooled_nll")
+        return self
+
+
+@dataclasses.dataclass(frozen=True)
+class _PairFit:
+    """Fits `(s, k)` of one group's binned statistics: Brent on log s outside, depth
+    scaling's `_fit_k` on `k' = k/s` inside (module docstring)."""
+
+    bounds: tuple[float, float]
+    scale_bounds: tuple[float, float]
+    xtol: float
+
+    def __call__(self, stats: _Binned, near_q: float, label: Hashable) -> tuple[float, float]:
+        low, high = self.scale_bounds
+        if low == high:
+            return low, self._k(stats, near_q, low, label)
+
+        def profile(log_s: float) -> float:
+            s = float(np.exp(log_s))
+            scaled = _at_scale(stats, near_q, s)
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", RuntimeWarning)
+                return scaled.nll(_fit_k(scaled, self._k_bounds(s), self.xtol, label))
+
+        result = minimize_scalar(profile, bounds=(np.log(low), np.log(high)), method="bounded",
+                                 options={"xatol": self.xtol})
+        log_s = float(result.x)
+        if min(log_s - np.log(low), np.log(high) - log_s) < 10 * self.xtol:
+            warnings.warn(f"shrinkage s for class {label!r} is at the edge of scale_bounds "
+                          f"{self.scale_bounds}", RuntimeWarning, stacklevel=3)
+        s = float(np.exp(log_s))
+        return s, self._k(stats, near_q, s, label)
+
+    def _k(self, stats: _Binned, near_q: float, s: float, label: Hashable) -> float:
+        """The NLL-optimal k at scale `s` (warnings of `_fit_k` shown)."""
+        return s * _fit_k(_at_scale(stats, near_q, s), self._k_bounds(s), self.xtol, label)
+
+    def _k_bounds(self, s: float) -> tuple[float, float]:
+        return self.bounds[0] / s, self.bounds[1] / s
+
+
+def _at_scale(stats: _Binned, near_q: float, s: float) -> _Binned:
+    """Binned statistics whose `nll(k / s)` is the NLL under `s·Σ + k·d·I`."""
+    if s == 1.0:
+        return stats
+    const = stats.const + stats.n * stats.n_dims * np.log(s) + near_q * (1.0 / s - 1.0)
+    return dataclasses.replace(stats, const=float(const), b_sum=stats.b_sum / s,
+                               b_zero=stats.b_zero / s)
+
+
+def _near_q(terms: _Terms, codes: np.ndarray, n_groups: int) -> np.ndarray:
+    """Per group `[G]`, the sum of `q/λ` over the samples at `d = 0` (regular Σ there)."""
+    near = terms.dist == 0
+    if not near.any():
+        return np.zeros(n_groups)
+    ratio = (terms.sq[:, near] / terms.eig[:, near]).sum(axis=0)
+    return np.bincount(codes[near], weights=ratio, minlength=n_groups)
+
+
+def _scaled_terms(terms: _Terms, s_rows: np.ndarray) -> _Terms:
+    """`terms` with the eigenvalues of row i multiplied by `s_rows [N]`."""
+    return _Terms(terms.eig * s_rows[None, :], terms.sq, terms.dist)
+
+
+def _check_scale_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
+    try:
+        low, high = (float(b) for b in bounds)
+    except (TypeError, ValueError):
+        raise FieldError("scale_bounds", "scale_bounds must be a pair of numbers, got "
+                                         f"{bounds!r}") from None
+    if not (np.isfinite(low) and np.isfinite(high) and 0 < low <= high):
+        raise FieldError("scale_bounds", "scale_bounds must satisfy 0 < low <= high (finite), "
+                                         f"got {bounds!r}")
+    return low, high
