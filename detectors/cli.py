@@ -8,19 +8,50 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 
-SENSORS = ("lidar", "radar1", "radar5", "camera")
-SPLIT_NAMES = ("train", "val", "test")
+from detectors.vocab import (
+    DETECTOR_COV_SOURCES,
+    DUMP_COV_SOURCES,
+    DUMP_FORMATS,
+    GT_FILTERS,
+    SENSORS,
+    SPLIT_NAMES,
+)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `train`, `dump` and `show` subcommands."""
-    tr = subparsers.add_parser(
-        "train", help="train a bundled detector on simulated frames (CPU, resumable)",
-        description="Train SENSOR's detector from its seed; checkpoints go to runs/SENSOR/ "
-                    "and an interrupted run resumes from there; the final weights are written "
-                    "to detectors/weights/SENSOR.pt.")
-    tr.add_argument("--sensor", choices=SENSORS, required=True)
+    _train_options(_sensor_command(
+        subparsers, "train", run_train,
+        "train a bundled detector on simulated frames (CPU, resumable)",
+        "Train SENSOR's detector from its seed; checkpoints go to runs/SENSOR/ and an "
+        "interrupted run resumes from there; the final weights are written to "
+        "detectors/weights/SENSOR.pt."))
+    _dump_options(_sensor_command(
+        subparsers, "dump", run_dump, "write a validation dump of a bundled detector",
+        "Run SENSOR's detector over simulated scenes of a split and write validation dump "
+        "v1 (NPZ) or a nuScenes results + ground-truth JSON pair."))
+    _show_options(_sensor_command(
+        subparsers, "show", run_show,
+        "draw a bird's-eye view of one simulated frame with detections",
+        "Points, ground-truth boxes, detections above a score and their covariance "
+        "ellipses, optionally after applying a calibration profile."))
+
+
+def _sensor_command(subparsers: argparse._SubParsersAction, name: str,
+                    func: Callable[[argparse.Namespace], int], summary: str,
+                    description: str) -> argparse.ArgumentParser:
+    """Subcommand `name` about one bundled detector: a required `--sensor`, handled by
+    `func`."""
+    parser = subparsers.add_parser(name, help=summary, description=description)
+    parser.add_argument("--sensor", choices=SENSORS, required=True)
+    parser.set_defaults(func=func)
+    return parser
+
+
+def _train_options(tr: argparse.ArgumentParser) -> None:
+    """`detcal train`'s options besides `--sensor`."""
     tr.add_argument("--steps", type=int, default=None,
                     help="optimiser steps (default: the sensor's recipe)")
     tr.add_argument("--batch-size", type=int, default=None, help="frames per step")
@@ -41,20 +72,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                          "file and train a fresh decoder head on it (recipe: "
                          "SUB_ENSEMBLE_RECIPE, e.g. --out detectors/weights/lidar_dse1.pt)")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
-    tr.set_defaults(func=run_train)
 
-    du = subparsers.add_parser(
-        "dump", help="write a validation dump of a bundled detector",
-        description="Run SENSOR's detector over simulated scenes of a split and write "
-                    "validation dump v1 (NPZ) or a nuScenes results + ground-truth JSON pair.")
-    du.add_argument("--sensor", choices=SENSORS, required=True)
+
+def _dump_options(du: argparse.ArgumentParser) -> None:
+    """`detcal dump`'s options besides `--sensor`."""
     du.add_argument("--split", choices=SPLIT_NAMES, default="val")
     du.add_argument("--frames", type=int, default=None, help="first N scenes of the split")
-    du.add_argument("--cov-source", choices=("layers", "attention", "none"), default="layers",
+    du.add_argument("--cov-source", choices=DUMP_COV_SOURCES, default="layers",
                     help="det_cov source (default: %(default)s)")
-    du.add_argument("--format", choices=("npz", "nuscenes"), default="npz")
-    du.add_argument("--gt-filter", choices=("lidar_radar", "sensor", "none"),
-                    default="lidar_radar",
+    du.add_argument("--format", choices=DUMP_FORMATS, default="npz")
+    du.add_argument("--gt-filter", choices=GT_FILTERS, default="lidar_radar",
                     help="ground truth kept: boxes with a lidar or radar point (nuScenes, "
                          "default), with a point of this sensor, or all")
     du.add_argument("--max-detections", type=int, default=None,
@@ -63,21 +90,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     du.add_argument("--out", required=True, help="NPZ path, or results JSON for nuscenes "
                     "(the ground truth goes next to it as *_gt.json)")
     du.add_argument("--quiet", action="store_true", help="no progress bar")
-    du.set_defaults(func=run_dump)
 
-    sh = subparsers.add_parser(
-        "show", help="draw a bird's-eye view of one simulated frame with detections",
-        description="Points, ground-truth boxes, detections above a score and their "
-                    "covariance ellipses, optionally after applying a calibration profile.")
-    sh.add_argument("--sensor", choices=SENSORS, required=True)
+
+def _show_options(sh: argparse.ArgumentParser) -> None:
+    """`detcal show`'s options besides `--sensor`."""
     sh.add_argument("--seed", type=int, required=True, help="scene seed")
     sh.add_argument("--out", required=True, help="PNG to write")
     sh.add_argument("--profile", default=None, help="calibration profile JSON to apply")
     sh.add_argument("--min-score", type=float, default=0.3,
                     help="draw detections with at least this score (default: %(default)s)")
-    sh.add_argument("--cov-source", choices=("layers", "attention"), default="layers")
+    sh.add_argument("--cov-source", choices=DETECTOR_COV_SOURCES, default="layers")
     sh.add_argument("--weights", default=None, help="weights file (default: shipped)")
-    sh.set_defaults(func=run_show)
 
 
 def run_train(args: argparse.Namespace) -> int:

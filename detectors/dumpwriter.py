@@ -2,7 +2,8 @@
 
 `build_dump` runs a sensor's detector over scenes of a split and collects, per kept query,
 the logits and boxes of every decoder layer, an optional box covariance over (x, y), and the
-ground truth of the same frames. Covariance sources (`cov_source`):
+ground truth of the same frames. Covariance sources (`cov_source`, one of
+`detectors.vocab.DUMP_COV_SOURCES`):
 
 - "layers" (default): sample covariance of the query's box across decoder layers (thesis);
 - "attention": seed 000's attention covariance C_K of the final layer's top-K attention,
@@ -32,10 +33,7 @@ import torch
 from detectors.infer import detect
 from detectors.model.detector import Detector
 from detectors.uncertainty import attention_spread, layer_covariance
-
-COV_SOURCES = ("layers", "attention", "none")
-GT_FILTERS = ("lidar_radar", "sensor", "none")
-FORMATS = ("npz", "nuscenes")
+from detectors.vocab import DUMP_COV_SOURCES, DUMP_FORMATS, GT_FILTERS
 
 
 def frame_id(seed: int) -> str:
@@ -76,8 +74,9 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
 
     if gt_filter not in GT_FILTERS:
         raise ValueError(f"gt_filter must be one of {list(GT_FILTERS)}, got {gt_filter!r}")
-    if cov_source not in COV_SOURCES:
-        raise ValueError(f"cov_source must be one of {list(COV_SOURCES)}, got {cov_source!r}")
+    if cov_source not in DUMP_COV_SOURCES:
+        raise ValueError(f"cov_source must be one of {list(DUMP_COV_SOURCES)}, "
+                         f"got {cov_source!r}")
     sensor = model.config.sensor
     max_detections = max_detections or model.config.n_queries
     seeds = [int(s) for s in seeds]
@@ -126,8 +125,8 @@ def write_dump(dump, out: str | Path, fmt: str = "npz") -> list[Path]:
     """Write `dump` as NPZ v1 (`out`) or as nuScenes JSON (`out` results + `*_gt.json`)."""
     from calibrators import io
 
-    if fmt not in FORMATS:
-        raise ValueError(f"format must be one of {list(FORMATS)}, got {fmt!r}")
+    if fmt not in DUMP_FORMATS:
+        raise ValueError(f"format must be one of {list(DUMP_FORMATS)}, got {fmt!r}")
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     if fmt == "npz":

@@ -15,6 +15,7 @@ from typing import Any
 import torch
 
 from detectors.model.detector import Detector, DetectorConfig
+from detectors.vocab import SENSORS
 
 WEIGHTS_DIR = Path(__file__).resolve().parent / "weights"
 WEIGHTS_FORMAT = "detcal-detector-v1"
@@ -23,12 +24,7 @@ MAX_WEIGHTS_BYTES = 10 * 1024 * 1024
 # Per-sensor hyper-parameters on top of DetectorConfig's defaults (the lidar recipe).
 # Radar and camera clouds are sparse or smeared in range, so their backbones see the same
 # grid; only the point features differ (taken from detectors.sim.FEATURES).
-_SENSOR_OVERRIDES: dict[str, dict[str, Any]] = {
-    "lidar": {},
-    "radar1": {},
-    "radar5": {},
-    "camera": {},
-}
+_SENSOR_OVERRIDES: dict[str, dict[str, Any]] = {name: {} for name in SENSORS}
 
 # Training recipe per sensor (detectors.train reads it; `detcal train --steps` overrides).
 # 4000 steps x 4 frames: ~26 min for lidar on the shared 2-core machine.
@@ -47,13 +43,13 @@ SUB_ENSEMBLE_RECIPE: dict[str, Any] = {"steps": 1500, "warmup": 100}
 
 
 def sensor_names() -> tuple[str, ...]:
-    """The sensors that have a detector configuration."""
-    return tuple(_SENSOR_OVERRIDES)
+    """The sensors that have a detector configuration: every one of `detectors.vocab.SENSORS`."""
+    return SENSORS
 
 
 def _check_name(name: str) -> None:
-    if name not in _SENSOR_OVERRIDES:
-        raise ValueError(f"name must be one of {list(_SENSOR_OVERRIDES)}, got {name!r}")
+    if name not in SENSORS:
+        raise ValueError(f"name must be one of {list(SENSORS)}, got {name!r}")
 
 
 def detector_config(name: str) -> DetectorConfig:
@@ -105,7 +101,7 @@ def load_weights(path: str | Path) -> tuple[Detector, dict[str, Any]]:
 
 def build_detector(name: str, pretrained: bool = True,
                    weights: str | Path | None = None) -> Detector:
-    """The detector of sensor `name` ("lidar", "radar1", "radar5", "camera").
+    """The detector of sensor `name` (one of `detectors.vocab.SENSORS`).
 
     With `pretrained` (default) the shipped weights (or the file `weights`) are loaded on the
     CPU and the model is returned in eval mode; a missing file raises FileNotFoundError

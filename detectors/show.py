@@ -12,25 +12,29 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from detectors.bevplot import add_ellipse, finish_bev_axes
+from calibrators.checks import check_choice
 from detectors.infer import detect
 from detectors.model.detector import Detector
-from detectors.sim.geometry import bev_outline
+from detectors.panels import pyplot
+from detectors.panels.bev import BevStyle, bev_panel
 from detectors.uncertainty import attention_spread, layer_covariance
+from detectors.vocab import DETECTOR_COV_SOURCES
+
+#: `detcal show`'s bird's-eye view: points coloured by height, grey dashed ground truth,
+#: red detections and text, orange ellipses.
+SHOW_BEV = BevStyle(point_color=None, point_size=(1.0, 4.0), point_alpha=0.6, gt_color="0.35",
+                    box_width=1.2, label_dy=1.0, label_colored=True)
 
 
 def render_frame(model: Detector, seed: int, out: str | Path, min_score: float = 0.3,
                  cov_source: str = "layers", profile: object | None = None,
                  confidence: float = 0.95, extent: float | None = None) -> Path:
-    """Draw scene `seed` as seen by `model`'s sensor into the PNG `out`."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    """Draw scene `seed` as seen by `model`'s sensor into the PNG `out`; `cov_source` is
+    one of `detectors.vocab.DETECTOR_COV_SOURCES`."""
     from calibrators import ellipse
     from detectors.sim import CLASSES, make_frame
 
+    check_choice("cov_source", cov_source, DETECTOR_COV_SOURCES)
     frame = make_frame(int(seed), model.config.sensor)
     points = np.array(frame.sensor_frame.points, dtype=np.float32)
     (det,) = list(detect(model, [torch.from_numpy(points)], max_detections=model.config.n_queries))
@@ -55,24 +59,13 @@ def render_frame(model: Detector, seed: int, out: str | Path, min_score: float =
     keep = scores >= min_score
     ell = ellipse(cov[keep][:, :2, :2], confidence=confidence) if keep.any() else None
 
-    half = extent or model.grid.half_extent
+    plt = pyplot()
     fig, ax = plt.subplots(figsize=(9, 9), dpi=110)
-    colour = points[:, 2] if points.shape[1] > 2 else None
-    ax.scatter(points[:, 0], points[:, 1], s=1.0 if len(points) > 5000 else 4.0, c=colour,
-               cmap="viridis", alpha=0.6,
-               linewidths=0)
-    for box in np.asarray(frame.scene.boxes, dtype=np.float64).reshape(-1, 9):
-        xy = bev_outline(box)
-        ax.plot(xy[:, 0], xy[:, 1], color="0.35", lw=1.0, ls="--")
-    names = [CLASSES[i] for i in labels[keep]]
-    for j, (box, score, name) in enumerate(zip(boxes[keep], scores[keep], names, strict=True)):
-        xy = bev_outline(box)
-        ax.plot(xy[:, 0], xy[:, 1], color="tab:red", lw=1.2)
-        ax.text(box[0], box[1] + 1.0, f"{name} {score:.2f}", fontsize=5, color="tab:red",
-                ha="center")
-        if ell is not None:
-            add_ellipse(ax, box[0], box[1], ell, j, "tab:orange")
-    finish_bev_axes(ax, half)
+    texts = [f"{CLASSES[label]} {score:.2f}" for label, score in zip(labels[keep], scores[keep],
+                                                                     strict=True)]
+    bev_panel(ax, points, np.asarray(frame.scene.boxes, dtype=np.float64).reshape(-1, 9),
+              boxes[keep], texts, ell, color="tab:red", ellipse_color="tab:orange",
+              half=extent or model.grid.half_extent, style=SHOW_BEV)
     ax.set_title(f"{title}; grey dashed: ground truth, red: score >= {min_score}, "
                  f"orange: {int(confidence * 100)} % ellipse", fontsize=8)
     out = Path(out)

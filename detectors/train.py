@@ -43,26 +43,30 @@ LOG_FIELDS = ("step", "lr", "loss", "heatmap", "cls", "box", "cls_last", "box_la
 
 @dataclass(frozen=True)
 class TrainConfig:
-    """Hyper-parameters of one training run (defaults: detectors.registry.TRAIN_RECIPES)."""
+    """Hyper-parameters of one training run (build it with `for_sensor`)."""
 
     sensor: str
+    # Set by the sensor's recipe, detectors.registry.TRAIN_RECIPES (the only place with
+    # their values).
     steps: int
-    batch_size: int = 4
-    lr: float = 2e-3
-    weight_decay: float = 1e-2
+    batch_size: int
+    lr: float
+    weight_decay: float
+    seed: int
+    # Schedule: linear warm-up steps, cosine floor as a fraction of lr, gradient-norm clip.
     warmup: int = 200
     min_lr_ratio: float = 0.02
     grad_clip: float = 10.0
-    seed: int = 0
-    ckpt_every: int = 200
-    threads: int = 2
-    workers: int = 1
     # Mean extra objects per class and training scene (rare-class over-sampling, see
     # detectors.sim.traffic.place_extra); None trains on the world's own class frequencies.
     extra_objects: dict[str, float] | None = None
     # Deep sub-ensemble member: copy and freeze the trunk of this weights file, train a
     # fresh decoder head on it (detectors.subensemble). None trains the whole model.
     base_weights: str | None = None
+    # Running: checkpoint every N steps, torch threads, frame-generating worker processes.
+    ckpt_every: int = 200
+    threads: int = 2
+    workers: int = 1
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "threads", "ckpt_every"):
@@ -74,6 +78,8 @@ class TrainConfig:
 
     @classmethod
     def for_sensor(cls, sensor: str, **overrides: Any) -> TrainConfig:
+        """`sensor`'s recipe (a sub-ensemble head's when `base_weights` is given), with the
+        `overrides` that are not None."""
         if sensor not in TRAIN_RECIPES:
             raise ValueError(f"sensor must be one of {list(TRAIN_RECIPES)}, got {sensor!r}")
         recipe = dict(TRAIN_RECIPES[sensor])

@@ -1,38 +1,60 @@
 """Matplotlib figures (Agg backend) rendered to inline SVG strings for the dashboard.
 
-Inputs are the plot data of a profile's report (`report["fit"]["plots"]`, see
-calibrators.report) and, for the bird's-eye view, one frame's detections.
+Inputs are the plot data of a profile's summary (`report["fit"]["plots"]`, see
+calibrators.summary) and, for the bird's-eye view, one frame's detections. The panels are
+`detectors.panels`' (shared with the report and `detcal show`); matplotlib is imported
+when a figure is drawn, never when this module is.
 """
 
 from __future__ import annotations
 
+import functools
 import io
-import math
 import re
-from collections.abc import Sequence
+import threading
+from collections.abc import Callable, Sequence
 from typing import Any
 
-import matplotlib
+import numpy as np
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import numpy as np  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-from matplotlib.patches import Ellipse as EllipsePatch  # noqa: E402
-from matplotlib.patches import Polygon  # noqa: E402
-
-from detectors.sim.geometry import bev_outline  # noqa: E402
+from calibrators.ellipse import Ellipse
+from detectors.panels import Curve, panel_grid, pyplot
+from detectors.panels.bev import BevStyle, bev_panel
+from detectors.panels.calibration_curve import calibration_curve_panel
+from detectors.panels.reliability import reliability_panel
 
 BEFORE, AFTER = "#d62728", "#1f77b4"
-plt.rcParams.update({"svg.fonttype": "none", "font.size": 8, "axes.titlesize": 9,
-                     "svg.hashsalt": "detcal"})
+#: Matplotlib settings of every dashboard figure: text stays text in the SVG, small fonts,
+#: and element ids that do not change from one rendering to the next.
+RC = {"svg.fonttype": "none", "font.size": 8, "axes.titlesize": 9, "svg.hashsalt": "detcal"}
+#: The dashboard's bird's-eye view: small grey points, solid green ground truth, each
+#: panel's detections, scores and ellipses in the panel's colour.
+DASHBOARD_BEV = BevStyle(point_color="0.55", point_size=(0.3, 0.3), gt_color="#2ca02c",
+                         gt_width=0.8, gt_line="-", box_width=0.9, label_dy=1.5,
+                         label_colored=True, ellipse_width=0.7, ellipse_alpha=0.8, ego_size=5,
+                         units="[m]")
 
 
-def to_svg(fig: Figure, title: str) -> str:
+_DRAWING = threading.Lock()
+
+
+def _figure(draw: Callable[..., str]) -> Callable[..., str]:
+    """Run `draw` (which creates, draws and `to_svg`s a figure) under the dashboard's RC,
+    one figure at a time: pyplot and its settings are process-wide, requests are threads."""
+
+    @functools.wraps(draw)
+    def wrapper(*args: Any, **kwargs: Any) -> str:
+        with _DRAWING, pyplot().rc_context(RC):
+            return draw(*args, **kwargs)
+
+    return wrapper
+
+
+def to_svg(fig: Any, title: str) -> str:
     """The figure as an `<svg>` element (XML prolog dropped), closed afterwards."""
     buf = io.StringIO()
     fig.savefig(buf, format="svg", bbox_inches="tight", metadata={"Title": title, "Date": None})
-    plt.close(fig)
+    pyplot().close(fig)
     text = buf.getvalue()
     start = text.find("<svg")
     svg = re.sub(r"<metadata>.*?</metadata>\s*", "", text[start:], flags=re.S)
@@ -43,74 +65,58 @@ def _arr(values: Sequence[Any] | None) -> np.ndarray:
     return np.array([np.nan if v is None else v for v in (values or [])], dtype=float)
 
 
-def _reliability_axes(ax: Any, before: dict | None, after: dict | None, title: str) -> None:
-    ax.plot([0, 1], [0, 1], color="0.6", lw=0.8, ls="--")
-    for data, color, label in ((before, BEFORE, "before"), (after, AFTER, "after")):
-        if not data:
-            continue
-        conf, acc = _arr(data["confidence"]), _arr(data["accuracy"])
-        ok = np.isfinite(conf) & np.isfinite(acc)
-        ax.plot(conf[ok], acc[ok], "o-", color=color, ms=3, lw=1.2, label=label)
-    ax.set_xlim(0, 1)
-    ax.set_ylim(0, 1)
-    ax.set_title(title)
-    ax.set_aspect("equal")
+def _before_after(pair: dict, x: str, y: str, lw: float) -> list[Curve]:
+    """The `before` and `after` curves of `pair` that exist, in their colours."""
+    return [Curve(_arr(data[x]), _arr(data[y]), {"color": color, "lw": lw, "label": key})
+            for key, color in (("before", BEFORE), ("after", AFTER)) if (data := pair.get(key))]
 
 
+@_figure
 def reliability(plots: dict, title: str = "Reliability (all classes)") -> str:
     """Accuracy vs confidence per bin, before and after calibration."""
-    fig, ax = plt.subplots(figsize=(3.4, 3.4))
-    rel = plots.get("reliability") or {}
-    _reliability_axes(ax, rel.get("before"), rel.get("after"), title)
+    fig, ax = pyplot().subplots(figsize=(3.4, 3.4))
+    curves = _before_after(plots.get("reliability") or {}, "confidence", "accuracy", 1.2)
+    reliability_panel(ax, curves, title, square=True)
     ax.set_xlabel("confidence")
     ax.set_ylabel("precision (TP fraction)")
     ax.legend(loc="upper left", frameon=False)
     return to_svg(fig, title)
 
 
+@_figure
 def reliability_per_class(plots: dict) -> str:
     """Small-multiple reliability diagrams, one per class."""
     per = plots.get("reliability_per_class") or {}
-    names = list(per)
-    cols = 5
-    rows = max(1, math.ceil(len(names) / cols))
-    fig, axes = plt.subplots(rows, cols, figsize=(1.9 * cols, 2.0 * rows), squeeze=False)
-    for ax in axes.flat:
-        ax.set_visible(False)
-    for ax, name in zip(axes.flat, names, strict=False):
-        ax.set_visible(True)
-        _reliability_axes(ax, per[name].get("before"), per[name].get("after"), name)
+    fig, axes = panel_grid(len(per), 5, 1.9, 2.0)
+    for ax, (name, pair) in zip(axes.flat, per.items(), strict=False):
+        reliability_panel(ax, _before_after(pair, "confidence", "accuracy", 1.2), name,
+                          square=True)
         ax.tick_params(labelsize=6)
     fig.tight_layout()
     return to_svg(fig, "Reliability per class")
 
 
+@_figure
 def calibration_curves(plots: dict) -> str:
     """Average-calibration curves (observed vs expected interval proportion) for x and y."""
     curves = plots.get("calibration_curve") or {}
-    fig, axes = plt.subplots(1, 2, figsize=(6.4, 3.2))
+    fig, axes = pyplot().subplots(1, 2, figsize=(6.4, 3.2))
     for ax, axis in zip(axes, ("x", "y"), strict=True):
-        ax.plot([0, 1], [0, 1], color="0.6", lw=0.8, ls="--")
-        data = curves.get(axis) or {}
-        for key, color in (("before", BEFORE), ("after", AFTER)):
-            c = data.get(key)
-            if c:
-                ax.plot(_arr(c["expected"]), _arr(c["observed"]), color=color, lw=1.4, label=key)
-        if not any(data.get(k) for k in ("before", "after")):
-            ax.text(0.5, 0.5, "no covariance", ha="center", va="center")
-        ax.set_title(f"Average calibration, {axis}")
-        ax.set_xlabel("expected proportion in interval")
-        ax.set_ylabel("observed proportion")
-        ax.set_aspect("equal")
+        calibration_curve_panel(ax, _before_after(curves.get(axis) or {}, "expected",
+                                                  "observed", 1.4),
+                                f"Average calibration, {axis}", ylabel="observed proportion",
+                                square=True)
         ax.legend(loc="upper left", frameon=False)
     fig.tight_layout()
     return to_svg(fig, "Average calibration curves")
 
 
+@_figure
 def residual_plot(plots: dict) -> str:
-    """Residual norm vs predicted sigma (sqrt trace Σ) of matched detections."""
+    """Residual norm vs predicted sigma (sqrt trace Σ) of matched detections (the report's
+    `residual_plots` draw each axis on log scales instead)."""
     res = plots.get("residuals") or {}
-    fig, ax = plt.subplots(figsize=(3.6, 3.4))
+    fig, ax = pyplot().subplots(figsize=(3.6, 3.4))
     top = 0.0
     for key, color in (("before", BEFORE), ("after", AFTER)):
         r = res.get(key)
@@ -129,6 +135,7 @@ def residual_plot(plots: dict) -> str:
     return to_svg(fig, "Residual plot")
 
 
+@_figure
 def bev(points: np.ndarray, gt_boxes: np.ndarray, panels: Sequence[dict], extent: float,
         title: str) -> str:
     """Bird's-eye view panels of one frame.
@@ -136,29 +143,14 @@ def bev(points: np.ndarray, gt_boxes: np.ndarray, panels: Sequence[dict], extent
     Each panel: `{"title", "boxes" [N, 9], "scores" [N], "ellipses": (major, minor, angle)
     arrays or None, "color"}`; points `[P, >=2]`, ground truth `[G, 9]`.
     """
-    fig, axes = plt.subplots(1, len(panels), figsize=(4.2 * len(panels), 4.4), squeeze=False)
+    fig, axes = pyplot().subplots(1, len(panels), figsize=(4.2 * len(panels), 4.4),
+                                  squeeze=False)
     for ax, panel in zip(axes[0], panels, strict=True):
-        if len(points):
-            ax.scatter(points[:, 0], points[:, 1], s=0.3, color="0.55", linewidths=0,
-                       rasterized=False)
-        for box in gt_boxes:
-            ax.add_patch(Polygon(bev_outline(box), closed=True, fill=False, ec="#2ca02c", lw=0.8))
-        color = panel["color"]
         el = panel.get("ellipses")
-        for i, (box, score) in enumerate(zip(panel["boxes"], panel["scores"], strict=True)):
-            ax.add_patch(Polygon(bev_outline(box), closed=True, fill=False, ec=color, lw=0.9))
-            ax.text(box[0], box[1] + 1.5, f"{score:.2f}", fontsize=5, color=color,
-                    ha="center")
-            if el is not None and el[0][i] > 0:
-                ax.add_patch(EllipsePatch((box[0], box[1]), 2 * el[0][i], 2 * el[1][i],
-                                          angle=math.degrees(el[2][i]), fill=False, ec=color,
-                                          lw=0.7, ls="-", alpha=0.8))
-        ax.plot([0], [0], marker="^", color="k", ms=5)
-        ax.set_xlim(-extent, extent)
-        ax.set_ylim(-extent, extent)
-        ax.set_aspect("equal")
+        bev_panel(ax, points, gt_boxes, panel["boxes"],
+                  [f"{score:.2f}" for score in panel["scores"]],
+                  None if el is None else Ellipse(*el), color=panel["color"],
+                  ellipse_color=panel["color"], half=extent, style=DASHBOARD_BEV)
         ax.set_title(panel["title"])
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
     fig.tight_layout()
     return to_svg(fig, title)

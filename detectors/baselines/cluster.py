@@ -32,8 +32,10 @@ import numpy as np
 from scipy.special import log_expit, log_softmax
 
 from calibrators.checks import as_float_array, as_int_array, check_choice, check_length
-from calibrators.covariance import DIM_INDEX, dim_indices
+from calibrators.covariance import dim_indices
 from calibrators.scores import SCORE_MODES
+from calibrators.vocab import BOX_INDEX as DIM_INDEX
+from calibrators.vocab import wrap_angle
 from detectors.baselines.bev_iou import check_boxes
 
 _YAW = DIM_INDEX["yaw"]
@@ -136,11 +138,6 @@ def summarise(data: Inputs, cluster: np.ndarray) -> MergedDetections:
         n_members=n[rank], cluster=out_cluster, dims=data.dims,
         layer_logits=None if logits is None else logits[rank],
         layer_boxes=None if lboxes is None else lboxes[rank])
-
-
-def wrap_angle(angle: np.ndarray) -> np.ndarray:
-    """Angles wrapped to (−π, π]."""
-    return np.pi - np.mod(np.pi - angle, 2.0 * np.pi)
 
 
 def _mean_boxes(boxes: np.ndarray, starts: np.ndarray, n: np.ndarray) -> np.ndarray:

@@ -40,21 +40,27 @@ from detectors.model.queries import HeatmapQueries
 class DetectorConfig:
     """Every hyper-parameter of one detector (values live in detectors.registry)."""
 
+    # The sensor, its point features and the class list (detectors.registry, from the sim).
     sensor: str
     features: tuple[str, ...]
     classes: tuple[str, ...]
+    # BEV grid: cells per side and metres per cell (fine map: stride 2, tokens: stride 4).
     grid_size: int = 128
     grid_cell: float = 0.8
+    # Backbone: pillar feature width, channels of stage 1 and 2, extra conv blocks per stage.
     pillar_channels: int = 32
     c1: int = 64
     c2: int = 96
     blocks: tuple[int, int] = (1, 1)
+    # Decoder: model width, attention heads, feed-forward width, decoder layers.
     d_model: int = 64
     n_heads: int = 4
     d_ffn: int = 128
     n_layers: int = 3
+    # Queries per frame (heatmap top-K); decoder dropout (also what MC dropout samples).
     n_queries: int = 150
     dropout: float = 0.1
+    # Classes exempt from the heatmap's 3x3 local-maximum suppression (TransFusion).
     keep_all_classes: tuple[str, ...] = ("pedestrian", "traffic_cone")
     extra: dict[str, Any] = field(default_factory=dict)
 

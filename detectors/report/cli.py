@@ -14,7 +14,7 @@ import sys
 import time
 from pathlib import Path
 
-SENSORS = ("lidar", "radar1", "radar5", "camera")
+from detectors.vocab import SENSORS
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

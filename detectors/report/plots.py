@@ -9,30 +9,28 @@
 
 Every function takes plain arrays and a path *stem* (no suffix) and returns the two files.
 Point clouds and scatter points are rasterised inside the SVGs (lines and text stay vector),
-which keeps each SVG under a megabyte.
+which keeps each SVG under a megabyte. The reliability, calibration-curve and bird's-eye
+panels are `detectors.panels`' (shared with `detcal show` and the dashboard).
 """
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
 
 from calibrators import ellipse, metrics
-from detectors.bevplot import add_ellipse, finish_bev_axes
+from detectors.panels import Curve, panel_grid, pyplot
+from detectors.panels.bev import BevStyle, bev_panel
+from detectors.panels.calibration_curve import calibration_curve_panel
+from detectors.panels.reliability import reliability_panel
 from detectors.report.attention import AttentionStats, Binned
-from detectors.sim.geometry import bev_outline
 
-
-def _plt():  # noqa: ANN202 - the pyplot module
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+#: The report's bird's-eye view: grey rasterised points, green dashed ground truth, blue
+#: detections with black text, red ellipses.
+REPORT_BEV = BevStyle(point_color="0.7", point_size=(0.5, 3), rasterize_points=True,
+                      gt_color="tab:green", box_width=1.1, label_dy=1.2, label_colored=False)
 
 
 def _save(fig: object, stem: Path) -> list[Path]:
@@ -43,7 +41,7 @@ def _save(fig: object, stem: Path) -> list[Path]:
     fig.tight_layout()  # type: ignore[attr-defined]
     for p in paths:
         fig.savefig(p, dpi=110)  # type: ignore[attr-defined]
-    _plt().close(fig)
+    pyplot().close(fig)
     return paths
 
 
@@ -51,45 +49,39 @@ def reliability_per_class(classes: Sequence[str], correct: np.ndarray, labels: n
                           scores: Mapping[str, np.ndarray], stem: Path) -> list[Path]:
     """One panel per class: accuracy vs confidence (10 bins) of each `scores[method] [N]`
     against `correct [N]` for the detections labelled with that class (`labels [N]`)."""
-    plt = _plt()
     cols = 5
-    rows = math.ceil(len(classes) / cols)
-    fig, axes = plt.subplots(rows, cols, figsize=(3.2 * cols, 3.0 * rows), squeeze=False)
+    fig, axes = panel_grid(len(classes), cols, 3.2, 3.0)
     for c, name in enumerate(classes):
-        ax = axes[c // cols][c % cols]
-        ax.plot([0, 1], [0, 1], color="0.6", lw=0.8, ls="--")
+        ax = axes.flat[c]
         rows_c = labels == c
-        for method, s in scores.items():
-            if not rows_c.any():
-                continue
-            d = metrics.reliability_diagram(s[rows_c], correct[rows_c])
-            ece = metrics.expected_calibration_error(s[rows_c], correct[rows_c])
-            ok = d.count > 0
-            ax.plot(d.confidence[ok], d.accuracy[ok], marker="o", ms=3,
-                    label=f"{method} (ECE {ece:.3f})")
-        ax.set_title(f"{name} ({int(rows_c.sum())} det.)", fontsize=9)
-        ax.set_xlim(0, 1)
-        ax.set_ylim(0, 1)
+        curves = [_reliability_curve(method, s[rows_c], correct[rows_c])
+                  for method, s in scores.items()] if rows_c.any() else []
+        reliability_panel(ax, curves, f"{name} ({int(rows_c.sum())} det.)")
         if rows_c.any():
             ax.legend(fontsize=6, loc="upper left")
         if c % cols == 0:
             ax.set_ylabel("precision (TP fraction)")
-        if c // cols == rows - 1:
+        if c // cols == axes.shape[0] - 1:
             ax.set_xlabel("confidence")
-    for c in range(len(classes), rows * cols):
-        axes[c // cols][c % cols].axis("off")
     return _save(fig, stem)
+
+
+def _reliability_curve(method: str, scores: np.ndarray, correct: np.ndarray) -> Curve:
+    """The reliability curve of one method (10 bins, the empty ones left out), its ECE in
+    the label."""
+    d = metrics.reliability_diagram(scores, correct)
+    ece = metrics.expected_calibration_error(scores, correct)
+    ok = d.count > 0
+    return Curve(d.confidence[ok], d.accuracy[ok], {"label": f"{method} (ECE {ece:.3f})"})
 
 
 def calibration_curves(residuals: Mapping[str, np.ndarray], covariances: Mapping[str, np.ndarray],
                        stem: Path) -> list[Path]:
     """Average calibration curves of x and y: `residuals[m] [M, 2]`, `covariances[m]
     [M, 2, 2]` per method (TPs with a zero variance on an axis are left out of that axis)."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.6))
+    fig, axes = pyplot().subplots(1, 2, figsize=(10, 4.6))
     for j, axis in enumerate(("x", "y")):
-        ax = axes[j]
-        ax.plot([0, 1], [0, 1], color="0.6", lw=0.8, ls="--", label="ideal")
+        curves = []
         for method, res in residuals.items():
             std = np.sqrt(np.maximum(covariances[method][:, j, j], 0.0))
             ok = std > 0
@@ -97,11 +89,11 @@ def calibration_curves(residuals: Mapping[str, np.ndarray], covariances: Mapping
                 continue
             curve = metrics.average_calibration_curve(res[ok, j], std[ok], n_bins=50)
             area = metrics.miscalibration_area(res[ok, j], std[ok], n_bins=50)
-            ax.plot(curve.expected, curve.observed, label=f"{method} (area {area:.3f})")
-        ax.set_title(f"average calibration, {axis}")
-        ax.set_xlabel("expected proportion in interval")
-        ax.set_ylabel("observed proportion in interval")
-        ax.legend(fontsize=8)
+            curves.append(Curve(curve.expected, curve.observed,
+                                {"label": f"{method} (area {area:.3f})"}))
+        calibration_curve_panel(axes[j], curves, f"average calibration, {axis}",
+                                diagonal_label="ideal")
+        axes[j].legend(fontsize=8)
     return _save(fig, stem)
 
 
@@ -109,9 +101,8 @@ def residual_plots(residuals: Mapping[str, np.ndarray], covariances: Mapping[str
                    stem: Path, max_points: int = 2000, seed: int = 0) -> list[Path]:
     """Per method (rows) and x / y / combined (columns): |residual| against predicted σ on
     log axes, with the lines |r| = σ and |r| = 3σ and the fraction of points under each."""
-    plt = _plt()
     methods = list(residuals)
-    fig, axes = plt.subplots(len(methods), 3, figsize=(12, 3.4 * len(methods)), squeeze=False)
+    fig, axes = pyplot().subplots(len(methods), 3, figsize=(12, 3.4 * len(methods)), squeeze=False)
     rng = np.random.default_rng(seed)
     for i, method in enumerate(methods):
         res, cov = residuals[method], covariances[method]
@@ -148,23 +139,13 @@ def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray
     """One panel per side: `points [P, >=2]`, GT `gt_boxes [G, 9]` (dashed), detections
     `boxes [N, 9]` with `labels [N]` whose side's `scores [N] >= min_score`, and the
     `confidence` ellipse of that side's `cov [N, 2, 2]`; `sides[name] = (scores, cov)`."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, len(sides), figsize=(8 * len(sides), 8), squeeze=False)
+    fig, axes = pyplot().subplots(1, len(sides), figsize=(8 * len(sides), 8), squeeze=False)
     for ax, (name, (scores, cov)) in zip(axes[0], sides.items(), strict=True):
-        ax.scatter(points[:, 0], points[:, 1], s=0.5 if len(points) > 5000 else 3, c="0.7",
-                   linewidths=0, rasterized=True)
-        for box in gt_boxes:
-            xy = bev_outline(box)
-            ax.plot(xy[:, 0], xy[:, 1], color="tab:green", lw=1.0, ls="--")
         keep = np.flatnonzero(scores >= min_score)
         ell = ellipse(cov[keep], confidence=confidence) if len(keep) else None
-        for j, i in enumerate(keep if ell is not None else ()):
-            xy = bev_outline(boxes[i])
-            ax.plot(xy[:, 0], xy[:, 1], color="tab:blue", lw=1.1)
-            ax.text(boxes[i, 0], boxes[i, 1] + 1.2, f"{classes[labels[i]]} {scores[i]:.2f}",
-                    fontsize=5, ha="center")
-            add_ellipse(ax, boxes[i, 0], boxes[i, 1], ell, j, "tab:red")
-        finish_bev_axes(ax, extent)
+        bev_panel(ax, points, gt_boxes, boxes[keep],
+                  [f"{classes[labels[i]]} {scores[i]:.2f}" for i in keep], ell,
+                  color="tab:blue", ellipse_color="tab:red", half=extent, style=REPORT_BEV)
         ax.set_title(f"{name}: score >= {min_score:g} (blue), ground truth (green dashed), "
                      f"{confidence:.0%} ellipse (red)", fontsize=8)
     return _save(fig, stem)
@@ -172,8 +153,7 @@ def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray
 
 def attention_plots(stats: AttentionStats, stem: Path) -> list[Path]:
     """Median attention spread with 25th-75th percentile bars vs IoU, distance and layer."""
-    plt = _plt()
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    fig, axes = pyplot().subplots(1, 3, figsize=(15, 4.2))
     parts: list[tuple[Binned, str]] = [(stats.vs_iou, "IoU with closest ground truth"),
                                        (stats.vs_distance, "distance from ego"),
                                        (stats.per_layer, "decoder layer")]

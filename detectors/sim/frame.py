@@ -9,8 +9,8 @@ import numpy as np
 
 from detectors.sim import camera, lidar, radar
 from detectors.sim.scene import Scene, make_scene
+from detectors.vocab import SENSORS
 
-SENSORS: tuple[str, ...] = ("lidar", "radar1", "radar5", "camera")
 FEATURES: dict[str, tuple[str, ...]] = {
     "lidar": lidar.FEATURES,
     "radar1": radar.FEATURES1,

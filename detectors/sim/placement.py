@@ -6,6 +6,7 @@ import dataclasses
 
 import numpy as np
 
+from calibrators.vocab import wrap_angle
 from detectors.sim.classes import (
     CLASS_SPECS,
     CLASSES,
@@ -73,7 +74,7 @@ class Placer:
         limit = GT_RANGE if is_gt else STATIC_RANGE
         if abs(x) > limit or abs(y) > limit:
             return False
-        yaw = _wrap(float(heading[0]) + rel_yaw)
+        yaw = float(wrap_angle(float(heading[0]) + rel_yaw))
         w, length, h = (float(v) for v in size)
         z = h / 2 if name != "tree_crown" else 2.6 + h / 2
         box = np.array([x, y, z, w, length, h, yaw, speed * np.cos(yaw), speed * np.sin(yaw)])
@@ -103,7 +104,3 @@ class Placer:
             np.array([xy[0, 0], xy[0, 1], 1.0, abs(t1 - t0), abs(s1 - s0), 2.0, heading[0]])
         )
 
-
-def _wrap(angle: float) -> float:
-    """Angle wrapped to [-pi, pi)."""
-    return (angle + np.pi) % (2 * np.pi) - np.pi

@@ -13,6 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from calibrators.vocab import wrap_angle
 from detectors.sim.geometry import bev_corners, bev_distance_to_box
 
 
@@ -102,7 +103,7 @@ def _box_hits(
     d_max = corner_d.max(axis=1)
     az_c = np.arctan2(boxes[:, 1] - origin[1], boxes[:, 0] - origin[0])
     rel = np.arctan2(corners[..., 1], corners[..., 0]) - az_c[:, None]
-    rel = (rel + np.pi) % (2 * np.pi) - np.pi
+    rel = wrap_angle(rel)
     i0 = np.ceil((az_c + rel.min(axis=1)) / res).astype(np.int64)
     i1 = np.floor((az_c + rel.max(axis=1)) / res).astype(np.int64)
     zb = boxes[:, 2] - boxes[:, 5] / 2 - origin[2]

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
-SPLITS: dict[str, range] = {
-    "train": range(0, 100_000),
-    "val": range(100_000, 101_000),
-    "test": range(200_000, 201_000),
-}
+from detectors.vocab import SPLIT_NAMES
+
+# Seed ranges in SPLIT_NAMES order: train, val, test.
+SPLITS: dict[str, range] = dict(zip(SPLIT_NAMES, (
+    range(0, 100_000),
+    range(100_000, 101_000),
+    range(200_000, 201_000),
+), strict=True))
 
 
 def split_seeds(split: str, n: int | None = None) -> range:
