@@ -62,7 +62,7 @@ class DetectorService:
                 import torch
 
                 from detectors import build_detector
-                from detectors.sim import SENSORS
+                from detectors.vocab import SENSORS
             except ImportError as exc:
                 raise DetectorUnavailable(f"the detectors package is not available ({exc})"
                                           ) from None

@@ -107,3 +107,14 @@ def check_choice(name: str, value: str, choices: Sequence[str]) -> None:
     """Raise unless `value` is one of `choices`."""
     if value not in choices:
         raise FieldError(name, f"{name} must be one of {list(choices)}, got {value!r}")
+
+
+def check_positive(name: str, value: object) -> float:
+    """`value` as a float, or a FieldError unless it is a finite number > 0."""
+    try:
+        x = float(value)  # type: ignore[arg-type]
+    except (TypeError, ValueError):
+        raise FieldError(name, f"{name} must be a finite number > 0, got {value!r}") from None
+    if not np.isfinite(x) or x <= 0:
+        raise FieldError(name, f"{name} must be a finite number > 0, got {value}")
+    return x

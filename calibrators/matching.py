@@ -27,7 +27,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
-from calibrators.checks import as_float_array, as_int_array, check_length
+from calibrators.checks import as_float_array, as_int_array, check_length, check_positive
 
 # nuScenes `detection_cvpr_2019` class ranges in metres (BEV distance from the ego).
 DEFAULT_CLASS_RANGE: Mapping[str, float] = {
@@ -225,7 +225,4 @@ def _xy(name: str, value: np.ndarray) -> np.ndarray:
 
 
 def _threshold(threshold: float) -> float:
-    t = float(threshold)
-    if not np.isfinite(t) or t <= 0:
-        raise ValueError(f"threshold must be a finite number > 0, got {threshold}")
-    return t
+    return check_positive("threshold", threshold)

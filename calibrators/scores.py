@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit, log_softmax
 
-from calibrators.checks import as_float_array, check_choice
+from calibrators.checks import as_float_array, check_choice, check_positive
 from calibrators.vocab import SCORE_MODES
 
 
@@ -45,7 +45,4 @@ def _logits(logits: np.ndarray, mode: str) -> np.ndarray:
 
 
 def _temperature(temperature: float) -> float:
-    t = float(temperature)
-    if not np.isfinite(t) or t <= 0:
-        raise ValueError(f"temperature must be a finite number > 0, got {temperature}")
-    return t
+    return check_positive("temperature", temperature)

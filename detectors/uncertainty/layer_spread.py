@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-DIM_INDEX = {"x": 0, "y": 1, "z": 2, "w": 3, "l": 4, "h": 5, "yaw": 6, "vx": 7, "vy": 8}
+from calibrators.vocab import BOX_INDEX, check_dims
 
 
 def layer_covariance(layer_boxes: Tensor, dims: Sequence[str] = ("x", "y")) -> Tensor:
@@ -30,9 +30,6 @@ def layer_covariance(layer_boxes: Tensor, dims: Sequence[str] = ("x", "y")) -> T
     if n_layers < 2:
         raise ValueError(f"layer_boxes needs at least 2 decoder layers for a spread, "
                          f"got {n_layers}")
-    for d in dims:
-        if d not in DIM_INDEX:
-            raise ValueError(f"dims must name box fields {list(DIM_INDEX)}, got {d!r}")
-    x = layer_boxes[..., [DIM_INDEX[d] for d in dims]]  # [N, L, D]
+    x = layer_boxes[..., [BOX_INDEX[d] for d in check_dims(dims)]]  # [N, L, D]
     centred = x - x.mean(dim=1, keepdim=True)
     return torch.einsum("nld,nle->nde", centred, centred) / (n_layers - 1)
