@@ -8,6 +8,8 @@ boxes) and each detection's ego position.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 from calibrators.dump import Dump
 from calibrators.matched import resolve_cov_source
 from calibrators.profile import CalibratedDetections, CalibrationProfile
@@ -25,12 +27,15 @@ def check_profile_fits(dump: Dump, profile: CalibrationProfile) -> None:
 
 
 def apply_profile(dump: Dump, profile: CalibrationProfile, *,
-                  ellipse_confidence: float = 0.95) -> CalibratedDetections:
+                  ellipse_confidence: float = 0.95,
+                  levels: Sequence[float] | None = None) -> CalibratedDetections:
     """Calibrate the N final-layer detections of `dump` with `profile` (arrays [N], in the
-    dump's detection order); see `CalibrationProfile.calibrate` for the result's fields."""
+    dump's detection order), with regions at `levels`; see `calibrators.serving` for the
+    result's fields."""
     check_profile_fits(dump, profile)
     return profile.calibrate(
         layer_logits=dump.det_logits, boxes=dump.final_boxes,
         covariances=dump.det_cov if profile.cov_source == "given" else None,
         layer_boxes=dump.det_boxes if profile.cov_source == "layers" else None,
-        ego_xy=dump.ego_xy(dump.det_frame), ellipse_confidence=ellipse_confidence)
+        ego_xy=dump.ego_xy(dump.det_frame), ellipse_confidence=ellipse_confidence,
+        levels=levels)

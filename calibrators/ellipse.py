@@ -39,6 +39,29 @@ def chi2_2_quantile(confidence: float) -> float:
 def ellipse(cov: np.ndarray, confidence: float = 0.95) -> Ellipse:
     """Confidence ellipse of `cov [N, 2, 2]` (arrays `[N]`) or `cov [2, 2]` (floats)."""
     q = chi2_2_quantile(confidence)
+    single, (high, low, angle) = _eigen(cov)
+    major, minor = np.sqrt(q * high), np.sqrt(q * low)
+    if single:
+        return Ellipse(float(major[0]), float(minor[0]), float(angle[0]))
+    return Ellipse(major, minor, angle)
+
+
+def radius_ellipse(cov: np.ndarray, radius: np.ndarray) -> Ellipse:
+    """Ellipses of `cov [N, 2, 2]` with Mahalanobis radius `radius [N]` (>= 0, finite):
+    semi-axes `r·sqrt(λ)`, the region `{x: xᵀ Σ⁻¹ x <= r²}` (a conformal radius, or
+    `sqrt(χ²₂(p))` for the Gaussian ellipse of confidence p)."""
+    r = as_float_array("radius", radius, ndim=1)
+    if (r < 0).any():
+        raise ValueError(f"radius must be >= 0, got {float(r.min())}")
+    single, (high, low, angle) = _eigen(cov)
+    if single or r.shape[0] != high.shape[0]:
+        raise ValueError(f"radius must have one entry per covariance [N, 2, 2], got "
+                         f"{r.shape[0]} for {high.shape[0]}")
+    return Ellipse(r * np.sqrt(high), r * np.sqrt(low), angle)
+
+
+def _eigen(cov: np.ndarray) -> tuple[bool, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """(single matrix?, (λ_max [N], λ_min [N], major-axis angle [N])) of `cov`."""
     arr = as_float_array("cov", cov)
     single = arr.ndim == 2
     batch = arr[None] if single else arr
@@ -46,11 +69,7 @@ def ellipse(cov: np.ndarray, confidence: float = 0.95) -> Ellipse:
     a, b, c = batch[:, 0, 0], batch[:, 0, 1], batch[:, 1, 1]
     mean = 0.5 * (a + c)
     radius = np.hypot(0.5 * (a - c), b)
-    major = np.sqrt(q * np.maximum(mean + radius, 0.0))
-    minor = np.sqrt(q * np.maximum(mean - radius, 0.0))
     # + 0.0 turns b = -0.0 into +0.0 so that a diagonal Σ with a < c gives +pi/2, not -pi/2.
     angle = 0.5 * np.arctan2(2.0 * b + 0.0, a - c)
     angle = np.where(angle <= -0.5 * np.pi, angle + np.pi, angle)  # same axis, in range
-    if single:
-        return Ellipse(float(major[0]), float(minor[0]), float(angle[0]))
-    return Ellipse(major, minor, angle)
+    return single, (np.maximum(mean + radius, 0.0), np.maximum(mean - radius, 0.0), angle)

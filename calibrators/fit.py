@@ -1,4 +1,4 @@
-"""Fit a calibration profile (temperature + per-class depth k) on a validation dump.
+"""Fit a calibration profile (score, covariance and region stages) on a validation dump.
 
 `fit_profile(dump, ...)` runs the whole pipeline:
 
@@ -8,15 +8,24 @@
    No class range filter is applied: the nuScenes ranges (30-50 m) are an evaluation
    convention, while a profile must calibrate every detection the detector emits, and the far
    detections carry most of the depth signal. Filter the dump beforehand to fit on a range;
-4. temperature scaling on the final-layer logits with TP labels (`matched.ts_labels`:
-   sigmoid 0/1 of the predicted class; softmax target column = matched class or no-object);
+4. a seeded `calibration` fraction of the fit part's frames is kept apart (when an `auto`
+   method has to be chosen or conformal radii fit): the *training* part fits, the
+   *calibration* part chooses and calibrates;
+5. score stage (`calibrators.fit_scores`): temperature scaling on the final-layer logits with
+   TP labels (`matched.ts_labels`: sigmoid 0/1 of the predicted class; softmax target column
+   = matched class or no-object) and the per-class calibrators, the best by held-out NLL;
    with `modulation=True` the final-layer logits are first modulated from all decoder layers
-   (Eq. 4-1, `calibrators.modulation`) and T is fit on the modulated logits. Matching and
-   labels stay those of the raw detector (modulation re-scores, it does not relabel);
-5. residuals (matched ground truth − final box) of the TPs over `dims` (yaw wrapped) and the
-   raw covariance from `cov_source` (`given` det_cov, `layers` spread across decoder layers,
-   `none`), then `DepthScaler` per predicted class with BEV distance from the ego;
-6. the before/after summary (`calibrators.summary`) on the fit part and the held-out part.
+   (Eq. 4-1, `calibrators.modulation`). Matching and labels stay those of the raw detector;
+6. covariance stage (`calibrators.fit_regions`): residuals (matched ground truth − final box)
+   of the TPs over `dims` (yaw wrapped), the raw covariance from `cov_source` (`given`
+   det_cov, `layers` spread across decoder layers, `none`), then `Σ + k_c·d·I` or
+   `s_c·Σ + k_c·d·I` per predicted class with BEV distance from the ego;
+7. region stage: split-conformal radii per class × distance bin on the calibration part
+   (its frames were not used for Σ'), or the Gaussian χ²₂ radii;
+8. the before/after summary (`calibrators.summary`) on the fit part and the held-out part,
+   with every candidate's held-out score in the report's `selection`.
+
+With the thesis methods (temperature, depth, gaussian) the profile is written as version 1.
 
 Every option is a field of `FitOptions` (calibrators/options.py), validated there once.
 """
@@ -30,24 +39,21 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.depth import DepthScaler
+from calibrators.apply import apply_profile
 from calibrators.dump import Dump
+from calibrators.fit_regions import fit_covariance_stage, fit_region_stage
+from calibrators.fit_scores import fit_score_stage
 from calibrators.matched import (
     match_dump,
-    raw_covariances,
     resolve_cov_source,
     select_detections,
     split_frames,
-    tp_residuals,
-    ts_labels,
-    ts_logits,
 )
 from calibrators.matching import MatchResult
 from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibrationProfile, make_provenance
 from calibrators.summary import summarize
 from calibrators.summary_types import ProfileReport
-from calibrators.temperature import TemperatureScaler
 
 Progress = Callable[[str, float], None]
 
@@ -89,26 +95,40 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
     if not matched.tp.any():
         raise ValueError(f"no detection matched ground truth within {threshold} m (threshold); "
                          f"check the dump's coordinates and classes")
+    train, calib = _calibration_split(fit_part, matched, opts)
 
-    report_progress("temperature", 0.25)
-    scaler = TemperatureScaler(mode=fit_part.score_mode)
-    scaler.fit(ts_logits(fit_part, modulation), ts_labels(fit_part, matched.tp))
+    report_progress("scores", 0.25)
+    scores = fit_score_stage(fit_part, matched.tp, train[0], train[1].tp,
+                             None if calib is None else calib[0],
+                             None if calib is None else calib[1].tp,
+                             opts.score_method, modulation, min_samples)
 
-    report_progress("depth", 0.4)
-    depth = _fit_depth(fit_part, matched, dims, source, min_samples)
-    fallbacks = [c for c in fit_part.classes if c not in depth.k_ or c in
-                 {str(f) for f in depth.fallback_classes_}]
+    report_progress("covariance", 0.4)
+    conformal = calib is not None and opts.region_method != "gaussian"
+    cov = fit_covariance_stage(train if conformal else (fit_part, matched), train, calib, dims,
+                               source, opts.cov_method, min_samples)
     profile = CalibrationProfile(
         classes=tuple(dump.classes), score_mode=dump.score_mode,
-        temperature=float(scaler.temperature_), modulation=modulation, cov_dims=dims,
-        cov_source=source,
-        depth_k={c: float(depth.k_.get(c, depth.pooled_k_)) for c in dump.classes},
-        pooled_k=float(depth.pooled_k_), fallback_classes=tuple(fallbacks),
+        temperature=scores.temperature, modulation=modulation, cov_dims=dims,
+        cov_source=source, depth_k=cov.depth_k, pooled_k=cov.pooled_k,
+        fallback_classes=cov.fallback_classes,
         matching={"rule": "center_distance", "threshold": threshold},
         min_score=min_score, report={},
-        provenance=_provenance(dump, fit_part, held_part, matched.tp, dump_sha256, holdout,
-                               seed),
-    )
+        provenance=_provenance(dump, fit_part, held_part, calib, matched.tp, dump_sha256, opts),
+        score_calibration={"method": scores.method, "params": scores.params},
+        covariance_scaling={"method": cov.method, "scale": cov.scale,
+                            "pooled_scale": cov.pooled_scale})
+
+    report_progress("regions", 0.5)
+    region = fit_region_stage(
+        calib, None if calib is None else apply_profile(calib[0], profile).covariances, dims,
+        opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges)
+    profile = _versioned(replace(profile, regions=None if region is None else {
+        "method": region.method, "conformal": region.conformal}))
+    selection = {"score": {"chosen": scores.method, "candidates": scores.candidates},
+                 "covariance": {"chosen": cov.method, "candidates": cov.candidates},
+                 "regions": None if region is None else {
+                     "chosen": region.method, "calibration_tps": region.n_calibration}}
 
     report_progress("report", 0.6)
     fit_summary = summarize(fit_part, profile, threshold=threshold, match=matched)
@@ -117,7 +137,7 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
         report_progress("holdout report", 0.8)
         held_summary = summarize(held_part, profile, threshold=threshold)
     report = ProfileReport(fit=fit_summary, holdout=held_summary, min_score=min_score,
-                           threshold=threshold)
+                           threshold=threshold, selection=selection)
     profile = replace(profile, report=report.to_dict())
     report_progress("done", 1.0)
     return profile
@@ -149,22 +169,35 @@ def dump_digest(dump: Dump) -> str:
     return h.hexdigest()
 
 
-def _fit_depth(dump: Dump, matched: MatchResult, dims: tuple[str, ...], source: str,
-               min_samples: int) -> DepthScaler:
-    """DepthScaler fit on the TPs' residuals `[M, D]`, raw covariance, distance and class."""
-    tp = matched.tp
-    residuals = tp_residuals(dump, matched, dims)
-    cov = raw_covariances(dump, source, dims)
-    classes = np.asarray(dump.classes)[dump.det_labels[tp]]
-    try:
-        return DepthScaler(min_samples=min_samples).fit(
-            residuals, None if cov is None else cov[tp], dump.det_distance[tp], classes)
-    except ValueError as exc:
-        raise ValueError(f"depth scaling failed with cov_source={source!r}: {exc}") from exc
+def _calibration_split(fit_part: Dump, matched: MatchResult, opts: FitOptions
+                       ) -> tuple[tuple[Dump, MatchResult], tuple[Dump, MatchResult] | None]:
+    """(training part, calibration part or None), each with its matching: a seeded
+    `opts.calibration` fraction of the fit part's frames, when something needs it (an `auto`
+    method to choose or conformal radii to fit). A part keeps its frames' matching."""
+    needed = "auto" in (opts.score_method, opts.cov_method) or opts.region_method != "gaussian"
+    if opts.calibration <= 0 or not needed or fit_part.n_frames < 2:
+        if opts.region_method == "conformal":
+            raise OptionError("calibration", "region_method='conformal' needs a calibration "
+                                             "part: calibration > 0 and at least 2 frames")
+        return (fit_part, matched), None
+    train, calib = split_frames(fit_part, opts.calibration, opts.seed + 1)
+    return (train, match_dump(train, opts.threshold)), (calib, match_dump(calib,
+                                                                          opts.threshold))
 
 
-def _provenance(dump: Dump, fit_part: Dump, held_part: Dump | None, tp: np.ndarray,
-                sha256: str, holdout: float, seed: int) -> dict:
+def _versioned(profile: CalibrationProfile) -> CalibrationProfile:
+    """The profile as version 1 when its stages are the thesis methods (temperature, depth,
+    gaussian): older readers load it and it serves exactly as version 1."""
+    if (profile.score_method, profile.cov_method, profile.region_method) == (
+            "temperature", "depth", "gaussian"):
+        return replace(profile, score_calibration=None, covariance_scaling=None, regions=None,
+                       schema_version=1)
+    return profile
+
+
+def _provenance(dump: Dump, fit_part: Dump, held_part: Dump | None,
+                calib: tuple[Dump, MatchResult] | None, tp: np.ndarray, sha256: str,
+                opts: FitOptions) -> dict:
     return make_provenance(
         dump_sha256=sha256,
         n_frames=dump.n_frames,
@@ -174,8 +207,10 @@ def _provenance(dump: Dump, fit_part: Dump, held_part: Dump | None, tp: np.ndarr
         n_fit_detections=fit_part.n_detections,
         n_holdout_frames=0 if held_part is None else held_part.n_frames,
         n_matched=int(np.count_nonzero(tp)),
-        holdout=holdout,
-        seed=int(seed),
+        holdout=opts.holdout,
+        seed=int(opts.seed),
+        n_calibration_frames=0 if calib is None else calib[0].n_frames,
+        options=opts.to_dict(),
     )
 
 

@@ -13,7 +13,14 @@ from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 from calibrators.exceptions import FieldError
-from calibrators.vocab import COV_SOURCE_CHOICES, check_dims
+from calibrators.levels import check_distance_edges
+from calibrators.vocab import (
+    COV_METHODS,
+    COV_SOURCE_CHOICES,
+    REGION_METHODS,
+    SCORE_METHODS,
+    check_dims,
+)
 
 __all__ = ["FitOptions", "OptionError", "OptionSpec"]
 
@@ -53,6 +60,14 @@ class FitOptions:
     score below it (None: all queries). min_samples: matches a class needs for its own k
     (else the pooled k). seed: the hold-out split's seed. modulation: logits modulation before
     temperature scaling (needs L >= 2 decoder layers).
+    score_method / cov_method / region_method: a method of `calibrators.vocab.SCORE_METHODS`
+    / `COV_METHODS` / `REGION_METHODS`, or `auto`: the candidate with the best held-out score
+    on the calibration part (score: binary NLL of the label's probability; covariance:
+    regression NLL; region: conformal when the calibration part has `min_group` true
+    positives, else gaussian). calibration: fraction of the fit frames in [0, 1) kept apart for
+    those choices and the conformal radii (0: none; `auto` then means the thesis methods).
+    min_group: calibration TPs a class × distance group needs for its own conformal radius.
+    distance_edges: inner edges (m) of the conformal distance bins.
     """
 
     threshold: float = _opt(2.0, "matching distance in m", float)
@@ -67,6 +82,19 @@ class FitOptions:
     seed: int = _opt(0, "seed of the hold-out split", int)
     modulation: bool = _opt(False, "logits modulation before temperature scaling (needs the "
                             "logits of every decoder layer, L >= 2)", bool)
+    score_method: str = _opt("auto", "score calibration: one temperature, or per class", str,
+                             ("auto", *SCORE_METHODS))
+    cov_method: str = _opt("auto", "covariance scaling: Σ + k·d·I (depth) or s·Σ + k·d·I "
+                           "(shrinkage), per class", str, ("auto", *COV_METHODS))
+    region_method: str = _opt("auto", "uncertainty regions: Gaussian χ² radii or split-"
+                              "conformal radii per class × distance bin", str,
+                              ("auto", *REGION_METHODS))
+    calibration: float = _opt(0.5, "fraction of the fit frames kept apart to choose the "
+                              "auto methods and calibrate the conformal radii, in [0, 1)", float)
+    min_group: int = _opt(100, "calibration TPs a class × distance group needs for its own "
+                          "conformal radius", int)
+    distance_edges: tuple[float, ...] = _opt((15.0, 30.0), "inner edges of the conformal "
+                                             "distance bins in m, comma separated", str)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -95,11 +123,23 @@ class FitOptions:
         if not isinstance(self.modulation, bool):
             raise OptionError("modulation", f"modulation must be True or False, got "
                                             f"{self.modulation!r}")
+        for name, choices in (("score_method", SCORE_METHODS), ("cov_method", COV_METHODS),
+                              ("region_method", REGION_METHODS)):
+            if getattr(self, name) not in ("auto", *choices):
+                raise OptionError(name, f"{name} must be one of {['auto', *choices]}, got "
+                                        f"{getattr(self, name)!r}")
+        set_(self, "calibration", _number("calibration", self.calibration))
+        if not 0.0 <= self.calibration < 1.0:
+            raise OptionError("calibration", f"calibration must be a fraction of frames in "
+                                             f"[0, 1), got {self.calibration}")
+        set_(self, "min_group", _integer("min_group", self.min_group, minimum=1))
+        set_(self, "distance_edges", _edges(self.distance_edges))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (dims as a list); `FitOptions.from_dict` reads it back."""
         out = asdict(self)
         out["dims"] = list(self.dims)
+        out["distance_edges"] = list(self.distance_edges)
         return out
 
     @classmethod
@@ -118,8 +158,9 @@ class FitOptions:
     def describe(cls) -> tuple[OptionSpec, ...]:
         """One `OptionSpec` per option, in declaration order (for CLI flags and form fields)."""
         return tuple(OptionSpec(name=f.name, type=f.metadata["type"],
-                                default=",".join(f.default) if isinstance(f.default, tuple)
-                                else f.default,
+                                default=",".join(f"{v:g}" if isinstance(v, float) else v
+                                                 for v in f.default)
+                                if isinstance(f.default, tuple) else f.default,
                                 choices=f.metadata["choices"], nullable=f.metadata["nullable"],
                                 help=f.metadata["help"]) for f in fields(cls))
 
@@ -145,3 +186,20 @@ def _integer(name: str, value: Any, minimum: int) -> int:
     if not whole or as_int < minimum:
         raise OptionError(name, f"{name} must be an integer >= {minimum}, got {value!r}")
     return as_int
+
+
+def _edges(value: Any) -> tuple[float, ...]:
+    """Inner distance-bin edges: `"15,30"` or numbers, increasing and > 0 (may be empty)."""
+    if isinstance(value, str):
+        value = [v.strip() for v in value.split(",") if v.strip()]
+    try:
+        edges = tuple(float(v) for v in value)
+    except (TypeError, ValueError):
+        raise OptionError("distance_edges", f"distance_edges must be numbers in m, got "
+                                            f"{value!r}") from None
+    try:
+        check_distance_edges((0.0, *edges, float("inf")), name="distance_edges")
+    except ValueError as exc:
+        raise OptionError("distance_edges", f"distance_edges must increase from > 0 m: "
+                                            f"{exc}") from None
+    return edges

@@ -47,16 +47,22 @@ from scipy.special import log_softmax
 from calibrators import metrics
 from calibrators.apply import apply_profile, check_profile_fits
 from calibrators.dump import Dump
+from calibrators.exceptions import FieldError
+from calibrators.fit_regions import xy_mahalanobis
+from calibrators.levels import DEFAULT_DISTANCE_EDGES, gaussian_radius
 from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
 from calibrators.matching import MatchResult
 from calibrators.metrics import expected_mahalanobis
 from calibrators.modulation import modulate_logits
 from calibrators.profile import CalibrationProfile
+from calibrators.serving import CalibratedDetections
 from calibrators.summary_types import ProfileReport, Summary
 from calibrators.vocab import check_dims
 
 __all__ = ["ProfileReport", "Summary", "format_table", "summarize"]
 
+#: The served levels whose coverage a summary measures.
+SUMMARY_LEVELS = (0.5, 0.9, 0.95, 0.99)
 _CURVE_POINTS = 50
 _CLASS_METRICS = ("ece", "mce", "dece", "nll", "brier")
 
@@ -64,12 +70,13 @@ _CLASS_METRICS = ("ece", "mce", "dece", "nll", "brier")
 def summarize(dump: Dump, profile: CalibrationProfile | None = None, *,
               threshold: float = 2.0, dims: str | Sequence[str] = ("x", "y"),
               cov_source: str = "auto", match: MatchResult | None = None,
-              max_points: int = 2000, seed: int = 0) -> Summary:
+              max_points: int = 2000, seed: int = 0,
+              levels: Sequence[float] = SUMMARY_LEVELS) -> Summary:
     """Before/after metrics of `dump`'s final-layer detections (keys: module docstring).
 
     With a `profile`, its dims and covariance source are used (`dims` / `cov_source` are
     ignored) and the dump must provide what it needs. `match` reuses a matching already done
-    at `threshold`.
+    at `threshold`. `levels`: the served region levels whose coverage is measured.
     """
     if profile is not None:
         dims, source = tuple(profile.cov_dims), profile.cov_source
@@ -81,7 +88,9 @@ def summarize(dump: Dump, profile: CalibrationProfile | None = None, *,
     tp = np.asarray(m.tp, dtype=bool)
     cov_raw = raw_covariances(dump, source, dims)
     before = _State(dump.det_scores, _full_probs(dump, 1.0), cov_raw)
-    after = None if profile is None else _calibrated(dump, profile, cov_raw)
+    after, served = (None, None) if profile is None else _calibrated(dump, profile, levels)
+    if after is not None and profile.score_method != "temperature":
+        before.probs = after.probs = None   # a per-class score stage: binary metrics on both
     res = tp_residuals(dump, m, dims)
     rng = np.random.default_rng(seed)
     sample = np.sort(rng.permutation(len(res))[:max_points])
@@ -101,6 +110,7 @@ def summarize(dump: Dump, profile: CalibrationProfile | None = None, *,
         "regression": _regression_section(res, tp, dims, before, after),
         "per_class": _per_class(dump, tp, res, profile, before, after),
         "plots": _plots(dump, tp, res, dims, before, after, sample),
+        "regions": None if served is None else _regions(dump, profile, tp, res, served),
     })
 
 
@@ -120,14 +130,45 @@ def _full_probs(dump: Dump, temperature: float, modulation: bool = False) -> np.
     return np.zeros((len(z), 0))
 
 
-def _calibrated(dump: Dump, profile: CalibrationProfile, cov_raw: np.ndarray | None
-                ) -> _State:
+def _calibrated(dump: Dump, profile: CalibrationProfile, levels: Sequence[float]
+                ) -> tuple[_State, CalibratedDetections | None]:
     n, dim = dump.n_detections, len(profile.cov_dims)
     probs = _full_probs(dump, profile.temperature, profile.modulation)
     if n == 0:
-        return _State(np.zeros(0), probs, np.zeros((0, dim, dim)))
-    out = apply_profile(dump, profile)
-    return _State(out.scores, probs, out.covariances)
+        return _State(np.zeros(0), probs, np.zeros((0, dim, dim))), None
+    try:
+        out = apply_profile(dump, profile, levels=levels)
+    except FieldError as exc:
+        if exc.field != "levels":
+            raise
+        out = apply_profile(dump, profile)   # a level the regions cannot serve: no coverage
+    return _State(out.scores, probs, out.covariances), out
+
+
+def _regions(dump: Dump, profile: CalibrationProfile, tp: np.ndarray, res: np.ndarray,
+             out: CalibratedDetections) -> dict[str, Any] | None:
+    """Coverage of the served ellipses per level, overall and per class × distance bin, their
+    mean area, and the coverage the Gaussian χ²₂ radii would give on the same Σ'."""
+    if not out.region_radii or "x" not in profile.cov_dims or "y" not in profile.cov_dims:
+        return None
+    levels = list(out.region_radii)
+    dims = tuple(profile.cov_dims)
+    radii = np.stack([out.region_radii[q][tp] for q in levels], axis=1)
+    cov = out.covariances[tp]
+    md = xy_mahalanobis(res, cov, dims)
+    ix, iy = dims.index("x"), dims.index("y")
+    block = cov[:, [ix, iy]][:, :, [ix, iy]]
+    conformal = profile._regions[1]
+    edges = DEFAULT_DISTANCE_EDGES if conformal is None else tuple(conformal.edges_)
+    if len(md) == 0:
+        return {"method": out.region_method, "levels": levels, "coverage": None,
+                "mean_area": None, "gaussian_coverage": None}
+    names = np.asarray(dump.classes)[dump.det_labels[tp]]
+    table = metrics.coverage_table(md, radii, levels, names, out.distances[tp], edges)
+    gauss = np.array([gaussian_radius(q) for q in levels])
+    return {"method": out.region_method, "levels": levels, "coverage": table.to_dict(),
+            "mean_area": metrics.mean_ellipse_area(block, radii).tolist(),
+            "gaussian_coverage": (md[:, None] <= gauss[None, :]).mean(axis=0).tolist()}
 
 
 def _pairs(before: dict[str, Any], after: dict[str, Any] | None) -> dict[str, dict]:
@@ -140,7 +181,7 @@ def _classification(dump: Dump, tp: np.ndarray, state: _State) -> dict[str, floa
         return dict.fromkeys(_CLASS_METRICS)
     conf = state.scores
     feats = dump.final_boxes[:, :2] - dump.ego_xy(dump.det_frame)
-    if dump.score_mode == "softmax":
+    if dump.score_mode == "softmax" and state.probs is not None:
         target = np.where(tp, dump.det_labels, len(dump.classes))
         nll = metrics.classification_nll(state.probs, target)
         brier = metrics.brier_score(state.probs, target)

@@ -145,7 +145,10 @@ class Summary:
     """Before/after calibration metrics of one set of detections (see `calibrators.summary`).
 
     classification: {ece, mce, dece, nll, brier} -> Pair; plots: the plot series as the
-    module docstring of `calibrators.summary` lists them (plain JSON, drawn by the dashboard).
+    module docstring of `calibrators.summary` lists them (plain JSON, drawn by the dashboard);
+    regions (with a profile serving ellipses): {method, levels [Q], coverage: the
+    `metrics.CoverageTable` dict (overall [Q] and rows per class × distance bin), mean_area [Q]
+    m², gaussian_coverage [Q]: what χ²₂ radii would cover on the same Σ'}.
     """
 
     schema: int
@@ -159,6 +162,7 @@ class Summary:
     regression: RegressionSummary
     per_class: tuple[ClassSummary, ...]
     plots: dict[str, Any]
+    regions: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """The stable JSON form (the dict a profile's report stores)."""
@@ -169,7 +173,8 @@ class Summary:
                 "classification": {k: v.to_dict() for k, v in self.classification.items()},
                 "regression": self.regression.to_dict(),
                 "per_class": [row.to_dict() for row in self.per_class],
-                "plots": self.plots}
+                "plots": self.plots,
+                **({} if self.regions is None else {"regions": self.regions})}
 
     @classmethod
     def from_dict(cls, data: Any) -> Summary:
@@ -188,23 +193,30 @@ class Summary:
                    regression=RegressionSummary.from_dict(_get(data, "regression", w)),
                    per_class=tuple(ClassSummary.from_dict(r)
                                    for r in _get(data, "per_class", w)),
-                   plots=_get(data, "plots", w))
+                   plots=_get(data, "plots", w), regions=data.get("regions"))
 
 
 @dataclass(frozen=True)
 class ProfileReport:
     """A profile's `report`: the summary on the fit part, on the held-out part (None without
-    a hold-out), the `min_score` filter and the matching `threshold` of the fit."""
+    a hold-out), the `min_score` filter and the matching `threshold` of the fit, and (fits
+    with stages) `selection`: per stage the chosen method and every candidate's held-out
+    score, `{"score": {"chosen", "candidates": {method: {"nll", "ece"}}}, "covariance":
+    {"chosen", "candidates": {method: {"nll"}}}, "regions": {"chosen", "calibration_tps"}}`."""
 
     fit: Summary
     holdout: Summary | None
     min_score: float | None
     threshold: float
+    selection: dict[str, Any] | None = None
 
     def to_dict(self) -> dict[str, Any]:
-        return {"fit": self.fit.to_dict(),
-                "holdout": None if self.holdout is None else self.holdout.to_dict(),
-                "min_score": self.min_score, "threshold": self.threshold}
+        out = {"fit": self.fit.to_dict(),
+               "holdout": None if self.holdout is None else self.holdout.to_dict(),
+               "min_score": self.min_score, "threshold": self.threshold}
+        if self.selection is not None:
+            out["selection"] = self.selection
+        return out
 
     @classmethod
     def from_dict(cls, data: Any) -> ProfileReport | None:
@@ -216,4 +228,5 @@ class ProfileReport:
         return cls(fit=Summary.from_dict(_get(data, "fit", "report")),
                    holdout=None if held is None else Summary.from_dict(held),
                    min_score=_get(data, "min_score", "report"),
-                   threshold=float(_get(data, "threshold", "report")))
+                   threshold=float(_get(data, "threshold", "report")),
+                   selection=data.get("selection"))

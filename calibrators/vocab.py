@@ -24,6 +24,14 @@ COV_SOURCES: tuple[str, ...] = ("given", "layers", "none")
 COV_SOURCE_CHOICES: tuple[str, ...] = ("auto", *COV_SOURCES)
 #: `sigmoid`: C independent class logits; `softmax`: C + 1 columns, the last is no-object.
 SCORE_MODES: tuple[str, ...] = ("sigmoid", "softmax")
+#: Score calibration of a profile: one global temperature (the thesis), or a per-class
+#: calibrator of the label's logit (`calibrators.score_calibration`).
+SCORE_METHODS: tuple[str, ...] = ("temperature", "class_temperature", "platt", "platt_range",
+                                  "isotonic", "histogram")
+#: Covariance scaling: `Σ + k_c·d·I` (depth, the thesis) or `s_c·Σ + k_c·d·I` (shrinkage).
+COV_METHODS: tuple[str, ...] = ("depth", "shrinkage")
+#: Uncertainty regions: χ²₂ radii of a Gaussian, or split-conformal radii per class × range.
+REGION_METHODS: tuple[str, ...] = ("gaussian", "conformal")
 
 
 def check_dims(dims: str | Sequence[str]) -> tuple[str, ...]:

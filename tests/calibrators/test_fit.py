@@ -59,7 +59,8 @@ def test_calibration_keeps_the_argmax_and_grows_covariance_with_distance(sigmoid
 
 def test_profile_report_has_fit_and_holdout_parts(sigmoid_profile, sigmoid_dump):
     rep = sigmoid_profile.report
-    assert set(rep) == {"fit", "holdout", "min_score", "threshold"}
+    assert set(rep) == {"fit", "holdout", "min_score", "threshold", "selection"}
+    assert set(rep["selection"]) == {"score", "covariance", "regions"}
     assert rep["min_score"] is None and rep["threshold"] == 2.0
     assert rep["fit"]["counts"]["frames"] + rep["holdout"]["counts"]["frames"] == \
         sigmoid_dump.n_frames
@@ -120,7 +121,7 @@ def test_progress_reports_every_stage(small_dump):
     fit_profile(small_dump, holdout=0.25, progress=lambda s, f: calls.append((s, f)))
     stages = [s for s, _ in calls]
     assert stages[0] == "prepare" and stages[-1] == "done"
-    assert {"match", "temperature", "depth", "report", "holdout report"} <= set(stages)
+    assert {"match", "scores", "covariance", "regions", "report", "holdout report"} <= set(stages)
     fractions = [f for _, f in calls]
     assert fractions == sorted(fractions) and fractions[-1] == 1.0
 

@@ -77,7 +77,7 @@ _DELETE = object()
 @pytest.mark.parametrize("changes, match", [
     ({"temperature": _DELETE}, "missing key 'temperature'"),
     ({"schema_version": _DELETE}, "missing key 'schema_version'"),
-    ({"schema_version": 2}, "schema_version 2 is not supported"),
+    ({"schema_version": 3}, "schema_version 3 is not supported"),
     ({"schema_version": "1"}, "schema_version '1' is not supported"),
     ({"temperature": "1.0"}, "key 'temperature' has the wrong type str"),
     ({"temperature": True}, "key 'temperature' has the wrong type bool"),

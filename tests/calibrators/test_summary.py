@@ -23,7 +23,7 @@ PLOT_KEYS = {"reliability", "reliability_per_class", "calibration_curve", "resid
 
 
 def _check_keys(report):
-    assert set(report) == TOP_KEYS
+    assert set(report) - {"regions"} == TOP_KEYS
     assert set(report["classification"]) == CLASS_KEYS
     assert set(report["regression"]) == REGRESSION_KEYS
     assert all(set(row) == ROW_KEYS for row in report["per_class"])
@@ -140,3 +140,14 @@ def test_summary_from_dict_names_a_missing_key(sigmoid_profile):
     del broken["regression"]["mean_md"]
     with pytest.raises(ValueError, match="regression is missing key 'mean_md'"):
         Summary.from_dict(broken)
+
+
+def test_served_region_coverage_is_measured(sigmoid_profile):
+    regions = sigmoid_profile.report["fit"]["regions"]
+    assert regions["levels"] == [0.5, 0.9, 0.95, 0.99]
+    assert regions["method"] == sigmoid_profile.region_method
+    overall = regions["coverage"]["overall"]
+    assert overall == sorted(overall) and all(0.0 <= c <= 1.0 for c in overall)
+    assert regions["mean_area"] == sorted(regions["mean_area"])
+    rows = regions["coverage"]["rows"]
+    assert sum(r["count"] for r in rows) == sigmoid_profile.report["fit"]["counts"]["tp"]

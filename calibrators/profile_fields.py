@@ -1,0 +1,172 @@
+"""Validation of a profile's fields (JSON types, names, numbers, the v2 stages): every error
+names the key. Used by `calibrators.profile` only."""
+
+from __future__ import annotations
+
+import json
+import math
+from typing import Any
+
+import numpy as np
+
+from calibrators.conformal import ConformalRegions
+from calibrators.exceptions import FieldError
+from calibrators.score_calibration import score_calibrator_from_dict
+from calibrators.vocab import COV_METHODS, REGION_METHODS, SCORE_METHODS
+
+#: Profile JSON versions this detcal reads: 1 (temperature + depth k, Gaussian ellipses) and
+#: 2 (adds the score, covariance-scaling and region stages). A v1 profile serves as before.
+SCHEMA_VERSIONS = (1, 2)
+SCHEMA_VERSION = 2
+MATCHING_RULES = ("center_distance",)
+#: The keys a version-2 profile adds.
+STAGE_KEYS = ("score_calibration", "covariance_scaling", "regions")
+
+JSON_TYPES: dict[str, tuple[type, ...]] = {
+    "schema_version": (int,), "classes": (list,), "score_mode": (str,),
+    "temperature": (int, float), "modulation": (bool,), "cov_dims": (list,),
+    "cov_source": (str,), "depth_k": (dict,),
+    "pooled_k": (int, float), "fallback_classes": (list,), "matching": (dict,),
+    "min_score": (int, float, type(None)), "report": (dict,), "provenance": (dict,),
+    "score_calibration": (dict, type(None)), "covariance_scaling": (dict, type(None)),
+    "regions": (dict, type(None)),
+}
+
+
+#: Keys older profiles lack, with the value that reproduces their behaviour.
+OPTIONAL_KEYS: dict[str, Any] = {"modulation": False, **dict.fromkeys(STAGE_KEYS)}
+
+
+def required(name: str, value: Any) -> Any:
+    """`value`, or a FieldError naming the argument (the first word of `name`) if None."""
+    if value is None:
+        raise FieldError(name.split()[0], f"{name} is required")
+    return value
+
+
+def check_schema_version(value: Any) -> None:
+    if isinstance(value, bool) or value not in SCHEMA_VERSIONS:
+        raise ValueError(f"schema_version {value!r} is not supported (this detcal reads "
+                         f"{list(SCHEMA_VERSIONS)})")
+
+
+def names(key: str, value: Any, distinct: bool = False) -> tuple[str, ...]:
+    if isinstance(value, str) or not isinstance(value, list | tuple | np.ndarray):
+        raise ValueError(f"{key} must be a list of names, got {type(value).__name__}")
+    names = tuple(value.tolist() if isinstance(value, np.ndarray) else value)
+    for name in names:
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{key} must hold non-empty strings, got {name!r}")
+    if distinct and len(set(names)) != len(names):
+        raise ValueError(f"{key} has duplicate names")
+    return names
+
+
+def number(key: str, value: Any, positive: bool = False, nonnegative: bool = False) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float | np.integer | np.floating):
+        raise ValueError(f"{key} must be a number, got {type(value).__name__}")
+    x = float(value)
+    if not math.isfinite(x):
+        raise ValueError(f"{key} must be finite, got {x}")
+    if positive and x <= 0:
+        raise ValueError(f"{key} must be > 0, got {x}")
+    if nonnegative and x < 0:
+        raise ValueError(f"{key} must be >= 0, got {x}")
+    return x
+
+
+def known(key: str, names: tuple[str, ...], classes: tuple[str, ...]) -> None:
+    for name in names:
+        if name not in classes:
+            raise ValueError(f"{key} names {name!r}, which is not in classes")
+
+
+def class_numbers(key: str, value: Any, classes: tuple[str, ...], positive: bool = False
+                  ) -> dict[str, float]:
+    """`{class name: number}` with known names and numbers >= 0 (> 0 with `positive`)."""
+    if not isinstance(value, dict):
+        raise ValueError(f"{key} must map class names to numbers, got {type(value).__name__}")
+    out = {}
+    for name, k in value.items():
+        known(key, (name,), classes)
+        out[name] = number(f"{key}[{name!r}]", k, positive=positive, nonnegative=not positive)
+    return out
+
+
+def matching(value: Any) -> dict[str, Any]:
+    if not isinstance(value, dict):
+        raise ValueError(f"matching must be an object, got {type(value).__name__}")
+    if value.get("rule") not in MATCHING_RULES:
+        raise ValueError(f"matching.rule must be one of {list(MATCHING_RULES)}, "
+                         f"got {value.get('rule')!r}")
+    threshold = number("matching.threshold", value.get("threshold"), positive=True)
+    return {**value, "threshold": threshold}
+
+
+def jsonable(key: str, value: Any) -> dict:
+    """A deep copy of `value` in plain JSON types (numpy scalars/arrays converted, tuples to
+    lists); non-finite numbers are refused so the profile is strict JSON."""
+    if not isinstance(value, dict):
+        raise ValueError(f"{key} must be an object, got {type(value).__name__}")
+
+    def default(obj: Any) -> Any:
+        if isinstance(obj, np.generic | np.ndarray):
+            return obj.tolist()
+        raise TypeError(f"{type(obj).__name__} is not JSON-able")
+
+    try:
+        return json.loads(json.dumps(value, allow_nan=False, default=default))
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{key} must hold JSON-able values with finite numbers: {exc}"
+                         ) from None
+
+
+def score_stage(value: Any) -> tuple[str, Any]:
+    """`(method, calibrator or None)` of a v2 `score_calibration` (None: temperature)."""
+    if value is None:
+        return "temperature", None
+    method = value.get("method") if isinstance(value, dict) else None
+    if method not in SCORE_METHODS:
+        raise ValueError(f"score_calibration.method must be one of {list(SCORE_METHODS)}, "
+                         f"got {method!r}")
+    if method == "temperature":
+        return method, None
+    try:
+        return method, score_calibrator_from_dict(value.get("params"))
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"score_calibration.params is not a valid {method} calibrator: "
+                         f"{exc}") from None
+
+
+def covariance_stage(value: Any, classes: tuple[str, ...]) -> tuple[str, dict, float]:
+    """`(method, s per class, pooled s)` of a v2 `covariance_scaling` (None: depth)."""
+    if value is None:
+        return "depth", {}, 1.0
+    method = value.get("method") if isinstance(value, dict) else None
+    if method not in COV_METHODS:
+        raise ValueError(f"covariance_scaling.method must be one of {list(COV_METHODS)}, "
+                         f"got {method!r}")
+    scale = class_numbers("covariance_scaling.scale", value.get("scale", {}), classes,
+                          positive=True)
+    pooled = number("covariance_scaling.pooled_scale", value.get("pooled_scale", 1.0),
+                    positive=True)
+    return method, scale, pooled
+
+
+def region_stage(value: Any, n_classes: int) -> tuple[str, ConformalRegions | None]:
+    """`(method, conformal regions or None)` of a v2 `regions` (None: gaussian)."""
+    if value is None:
+        return "gaussian", None
+    method = value.get("method") if isinstance(value, dict) else None
+    if method not in REGION_METHODS:
+        raise ValueError(f"regions.method must be one of {list(REGION_METHODS)}, got "
+                         f"{method!r}")
+    if method == "gaussian":
+        return method, None
+    try:
+        regions = ConformalRegions.from_dict(value.get("conformal"))
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"regions.conformal is not valid: {exc}") from None
+    if regions.classes_ != list(range(n_classes)):
+        raise ValueError("regions.conformal must serve the profile's class indices")
+    return method, regions

@@ -1,0 +1,268 @@
+"""Apply a `CalibrationProfile` to N detections: `calibrate_detections` -> `CalibratedDetections`.
+
+Class evidence: `logits [N, C']` (C' = C sigmoid, C + 1 softmax), or `layer_logits [N, L, C']`
+from every decoder layer (the last is the final layer), or raw `scores [N]` with `labels [N]`.
+The label is the arg-max of the raw final layer and never changes. The score is
+`sigmoid/softmax(z / T)` (version 1, and version 2 with the `temperature` method; from a raw
+score, `sigmoid(logit(p) / T)`), or the profile's per-class calibrator of the label's logit
+(`logit(p)` of a raw score; range-conditioned methods use the distance). A profile with
+`modulation` needs `layer_logits` (L >= 2): `z` is then modulated over all layers.
+`boxes [N, 9]` (required) give the distance `d` from `ego_xy [N, 2]` (default origin). Σ comes
+from the profile's `cov_source`: `covariances [N, D, D]` ("given"), `layer_boxes [N, L, 9]`
+("layers", spread across decoder layers) or zeros ("none"); `layer_boxes` are ignored
+otherwise. `Σ' = Σ + k_c·d·I`, or `s_c·Σ + k_c·d·I` with a shrinkage stage. Regions are
+ellipses of the x, y block of `Σ'` with semi-axes `r_q·sqrt(λ)`: `r_q = sqrt(χ²₂(q))`
+(gaussian) or the conformal radius of the detection's class × distance group.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from scipy.special import expit, logit
+
+from calibrators.checks import (
+    as_float_array,
+    as_int_array,
+    check_covariances,
+    check_index,
+    check_length,
+    check_probabilities,
+)
+from calibrators.covariance import layer_spread
+from calibrators.depth import add_depth_term
+from calibrators.ellipse import Ellipse, ellipse, radius_ellipse
+from calibrators.exceptions import FieldError
+from calibrators.levels import check_levels, gaussian_radius
+from calibrators.modulation import modulate_logits
+from calibrators.scores import class_probabilities, predict
+
+if TYPE_CHECKING:
+    from calibrators.profile import CalibrationProfile
+
+__all__ = ["CalibratedDetections", "calibrate_detections"]
+
+_EPS = 1e-12
+
+
+@dataclass
+class CalibratedDetections:
+    """Result of `CalibrationProfile.calibrate` for N detections.
+
+    labels [N] int64; scores [N] calibrated probability of the label; scores_raw [N] before
+    calibration; class_scores [N, C] calibrated (None for scores-only input or a per-class
+    score stage); covariances [N, D, D] = Σ'; ellipses of the x, y block at
+    `ellipse_confidence` (arrays [N]) or None; distances [N] m. regions: level -> ellipses
+    [N] for each requested level; region_method: `gaussian` | `conformal` (None without x, y);
+    region_groups: [N] the conformal group serving each detection, e.g. `car 15-30 m`
+    (None for gaussian); region_radii: level -> Mahalanobis radius [N] of each region.
+    """
+
+    labels: np.ndarray
+    scores: np.ndarray
+    scores_raw: np.ndarray
+    class_scores: np.ndarray | None
+    covariances: np.ndarray
+    ellipses: Ellipse | None
+    distances: np.ndarray
+    regions: dict[float, Ellipse] = field(default_factory=dict)
+    region_method: str | None = None
+    region_groups: list[str] | None = None
+    region_radii: dict[float, np.ndarray] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return len(self.labels)
+
+
+def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | None = None,
+                         scores: np.ndarray | None = None, labels: np.ndarray | None = None,
+                         boxes: np.ndarray | None = None, covariances: np.ndarray | None = None,
+                         layer_boxes: np.ndarray | None = None,
+                         ego_xy: np.ndarray | None = None, ellipse_confidence: float = 0.95,
+                         layer_logits: np.ndarray | None = None,
+                         levels: Sequence[float] | np.ndarray | None = None
+                         ) -> CalibratedDetections:
+    """Calibrate N detections with `profile` (module docstring). `levels`: the region levels
+    to serve (at most 20, each in (0, 1)); a FieldError names the argument at fault."""
+    box = as_float_array("boxes", _required("boxes", boxes), ndim=2)
+    if box.shape[1] != 9:
+        raise FieldError("boxes", f"boxes must have shape [N, 9], got {box.shape}")
+    n = box.shape[0]
+    ego = np.zeros((n, 2)) if ego_xy is None else as_float_array("ego_xy", ego_xy, ndim=2)
+    if ego.shape != (n, 2):
+        raise FieldError("ego_xy", f"ego_xy must have shape [{n}, 2], got {ego.shape}")
+    distances = np.hypot(box[:, 0] - ego[:, 0], box[:, 1] - ego[:, 1])
+    labels_, scores_, raw, class_scores = _class_evidence(profile, logits, scores, labels,
+                                                          layer_logits, distances)
+    check_length("boxes", box, len(labels_), "the class evidence")
+    cov = _scaled(profile, _base_covariance(profile, covariances, layer_boxes, n), distances,
+                  labels_)
+    wanted = None if levels is None else check_levels(levels)
+    confidence = check_levels([ellipse_confidence], "ellipse_confidence")[0]
+    served = [float(confidence)] + ([] if wanted is None else
+                                    [float(q) for q in wanted if q != confidence])
+    regions, radii, method, groups = _regions(profile, cov, distances, labels_, served)
+    return CalibratedDetections(labels=labels_, scores=scores_, scores_raw=raw,
+                                class_scores=class_scores, covariances=cov,
+                                ellipses=regions.get(float(confidence)),
+                                distances=distances,
+                                regions={} if wanted is None
+                                else {float(q): regions[float(q)] for q in wanted},
+                                region_method=method, region_groups=groups,
+                                region_radii={} if wanted is None
+                                else {float(q): radii[float(q)] for q in wanted})
+
+
+def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
+                    scores: np.ndarray | None, labels: np.ndarray | None,
+                    layer_logits: np.ndarray | None, distances: np.ndarray
+                    ) -> tuple[np.ndarray, ...]:
+    """Labels, calibrated scores, raw scores `[N]` and class probabilities `[N, C]|None`."""
+    given = [name for name, value in (("logits", logits), ("layer_logits", layer_logits),
+                                      ("scores", scores)) if value is not None]
+    if len(given) != 1:
+        raise FieldError("logits", f"pass either logits or scores (with labels), or "
+                                   f"layer_logits in place of logits; got {given or 'none'}")
+    if profile.modulation and layer_logits is None:
+        raise FieldError("layer_logits", f"the profile applies logits modulation, which "
+                                         f"needs layer_logits with at least 2 layers "
+                                         f"[N, L, C'] (every decoder layer's logits), not "
+                                         f"{given[0]}")
+    n_classes, mode = len(profile.classes), profile.score_mode
+    want = n_classes + (1 if mode == "softmax" else 0)
+    method, calibrator = profile._score
+    if layer_logits is not None:
+        layers = as_float_array("layer_logits", layer_logits, ndim=3)
+        if layers.shape[2] != want:
+            raise FieldError("layer_logits", f"layer_logits has {layers.shape[2]} columns but "
+                                             f"the profile's {mode} mode with "
+                                             f"{n_classes} classes needs {want}")
+        if profile.modulation and layers.shape[1] < 2:
+            raise FieldError("layer_logits", f"the profile applies logits modulation, "
+                                             f"which needs layer_logits with at least 2 "
+                                             f"layers, got {layers.shape[1]}")
+        logits = layers[:, -1]
+    if logits is not None:
+        z = as_float_array("logits", logits, ndim=2)
+        if z.shape[1] != want:
+            raise FieldError("logits", f"logits has {z.shape[1]} columns but the profile's "
+                                       f"{mode} mode with {n_classes} classes needs {want}")
+        pred, raw = predict(z, mode)
+        if labels is not None:
+            given_labels = as_int_array("labels", labels)
+            check_length("labels", given_labels, len(pred), "logits")
+            if not np.array_equal(given_labels, pred):
+                raise FieldError("labels", "labels differ from the arg-max of logits; "
+                                           "pass one of them")
+        if profile.modulation:
+            z = modulate_logits(layers)
+        if calibrator is None:
+            probs = class_probabilities(z, mode, profile.temperature)
+            return pred, probs[np.arange(len(pred)), pred], raw, probs
+        from calibrators.fit_scores import label_logit
+
+        check_length("logits", pred, len(distances), "boxes")
+        return pred, calibrator.transform(label_logit(z, pred, mode), pred,
+                                          distances=distances), raw, None
+    p = as_float_array("scores", scores, ndim=1)
+    check_probabilities("scores", p)
+    lab = as_int_array("labels", _required("labels (with scores)", labels))
+    check_length("labels", lab, len(p), "scores")
+    check_index("labels", lab, n_classes, "classes")
+    if calibrator is None:
+        with np.errstate(divide="ignore"):
+            calibrated = expit(logit(p) / profile.temperature)
+        return lab, calibrated, p, None
+    check_length("scores", p, len(distances), "boxes")
+    z_label = logit(np.clip(p, _EPS, 1.0 - _EPS))
+    return lab, calibrator.transform(z_label, lab, distances=distances), p, None
+
+
+def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None,
+                     layer_boxes: np.ndarray | None, n: int) -> np.ndarray:
+    """`[N, D, D]` Σ before scaling, from the profile's cov_source."""
+    dim = len(profile.cov_dims)
+    source = profile.cov_source
+    if source != "given" and covariances is not None:
+        raise FieldError("covariances", f"covariances were given but the profile's "
+                                        f"cov_source is {source!r}: its k was fit "
+                                        f"without them")
+    if source == "given":
+        if covariances is None:
+            raise FieldError("covariances", f"covariances are required: the profile was fit "
+                                            f"on given covariances (cov_source 'given') over "
+                                            f"cov_dims {list(profile.cov_dims)}")
+        cov = as_float_array("covariances", covariances, ndim=3)
+        if cov.shape[1:] != (dim, dim):
+            raise FieldError("covariances", f"covariances are {cov.shape[1]}x{cov.shape[2]} "
+                                            f"but the profile's cov_dims "
+                                            f"{list(profile.cov_dims)} need {dim}x{dim}")
+        check_covariances("covariances", cov, n=n, dim=dim)
+        return cov
+    if source == "layers":
+        layers = _required("layer_boxes (the profile's cov_source is 'layers')", layer_boxes)
+        spread = layer_spread(layers, profile.cov_dims)
+        check_length("layer_boxes", spread, n, "boxes")
+        return spread
+    return np.zeros((n, dim, dim))
+
+
+def _scaled(profile: CalibrationProfile, base: np.ndarray, distances: np.ndarray,
+            labels: np.ndarray) -> np.ndarray:
+    """Σ' = Σ + k·d·I, or s·Σ + k·d·I with a shrinkage stage (class of each detection)."""
+    k_table = np.array([profile.depth_k.get(c, profile.pooled_k) for c in profile.classes])
+    method, scale, pooled_scale = profile._covariance
+    if method == "shrinkage":
+        s_table = np.array([scale.get(c, pooled_scale) for c in profile.classes])
+        base = base * s_table[labels][:, None, None]
+    return add_depth_term(base, distances, k_table[labels])
+
+
+def _regions(profile: CalibrationProfile, cov: np.ndarray, distances: np.ndarray,
+             labels: np.ndarray, levels: list[float]
+             ) -> tuple[dict[float, Ellipse], dict[float, np.ndarray], str | None,
+                        list[str] | None]:
+    """Ellipses of the x, y block of `cov [N, D, D]` at each level, their radii `[N]`, the
+    method and the serving groups; ({}, {}, None, None) if cov_dims lack x or y."""
+    if "x" not in profile.cov_dims or "y" not in profile.cov_dims:
+        return {}, {}, None, None
+    ix, iy = profile.cov_dims.index("x"), profile.cov_dims.index("y")
+    block = cov[:, [ix, iy]][:, :, [ix, iy]]
+    method, conformal = profile._regions
+    n = len(labels)
+    if conformal is None:
+        return ({float(q): ellipse(block, q) for q in levels},
+                {float(q): np.full(n, gaussian_radius(q)) for q in levels}, method, None)
+    radii = conformal.radii(levels, labels, distances)
+    groups = conformal.groups(labels, distances)
+    bad = ~np.isfinite(radii)
+    if bad.any():
+        i, j = (int(v) for v in np.argwhere(bad)[0])
+        g = groups[i]
+        raise FieldError("levels", f"level {levels[j]} needs more calibration points than "
+                                   f"the conformal group serving detection {i} has "
+                                   f"({_group_name(profile, g)}: {g['n']}); the largest level "
+                                   f"it serves is {g['n'] / (g['n'] + 1):.4g}", row=i)
+    return ({float(q): radius_ellipse(block, radii[:, j]) for j, q in enumerate(levels)},
+            {float(q): radii[:, j] for j, q in enumerate(levels)}, method,
+            [_group_name(profile, g) for g in groups])
+
+
+def _group_name(profile: CalibrationProfile, group: dict[str, Any]) -> str:
+    """`car 15-30 m`, `all classes 30+ m`, ... from `ConformalRegions.groups` rows."""
+    label = group["class"]
+    who = "all classes" if label is None else profile.classes[int(label)]
+    edges = profile._regions[1].edges_
+    lo, hi = edges[min(group["bins"])], edges[max(group["bins"]) + 1]
+    where = f"{lo:g}+ m" if not np.isfinite(hi) else f"{lo:g}-{hi:g} m"
+    return f"{who} {where}"
+
+
+def _required(name: str, value: Any) -> Any:
+    """`value`, or a FieldError naming the argument (the first word of `name`) if None."""
+    if value is None:
+        raise FieldError(name.split()[0], f"{name} is required")
+    return value
