@@ -16,6 +16,8 @@ import numpy as np
 
 from app.cache import LoadedProfile
 from app.store import JobRecord, NameSummary
+from calibrators import ProfileReport, Summary
+from calibrators.summary_types import Pair
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,sans-serif;margin:0;background:#f6f7f9;color:#222}
@@ -44,55 +46,88 @@ def _num(value: Any, digits: int = 4) -> str:
     return _e(value)
 
 
-def _pair_row(name: str, pair: dict | None, lower_is_better: bool = True) -> str:
-    pair = pair or {}
-    b, a = pair.get("before"), pair.get("after")
+def _pair_row(name: str, pair: Pair | None, lower_is_better: bool = True) -> str:
+    b, a = (None, None) if pair is None else (pair.before, pair.after)
     cls = ""
     if isinstance(b, int | float) and isinstance(a, int | float):
         cls = "better" if (a < b) == lower_is_better else "worse"
     return f"<tr><td>{_e(name)}</td><td>{_num(b)}</td><td class='{cls}'>{_num(a)}</td></tr>"
 
 
-def before_after_table(report: dict) -> str:
+def before_after_table(summary: Summary) -> str:
     """The before/after metrics table of one report part (classification and regression)."""
-    c = report.get("classification") or {}
-    r = report.get("regression") or {}
+    c, r = summary.classification, summary.regression
     rows = [_pair_row(label, c.get(key)) for key, label in
             (("ece", "ECE"), ("mce", "MCE"), ("dece", "D-ECE"), ("nll", "class NLL"),
              ("brier", "Brier"))]
-    rows.append(_pair_row("regression NLL", r.get("nll")))
-    md = r.get("mean_md") or {}
-    rows.append(f"<tr><td>mean Mahalanobis distance (ideal {_num(r.get('expected_md'))})</td>"
-                f"<td>{_num(md.get('before'))}</td><td>{_num(md.get('after'))}</td></tr>")
-    cov = r.get("coverage") or {}
-    for i, radius in enumerate(cov.get("radii") or []):
-        nominal = (cov.get("nominal") or [None] * (i + 1))[i]
-        before = (cov.get("before") or [None] * (i + 1))[i]
-        after = (cov.get("after") or [None] * (i + 1))[i]
-        rows.append(f"<tr><td>coverage within {radius:g}σ (nominal {_num(nominal, 3)})</td>"
-                    f"<td>{_num(before, 3)}</td><td>{_num(after, 3)}</td></tr>")
-    for axis, pair in (r.get("miscalibration_area") or {}).items():
+    rows.append(_pair_row("regression NLL", r.nll))
+    rows.append(f"<tr><td>mean Mahalanobis distance (ideal {_num(r.expected_md)})</td>"
+                f"<td>{_num(r.mean_md.before)}</td><td>{_num(r.mean_md.after)}</td></tr>")
+    cov = r.coverage
+    for i, radius in enumerate(cov.radii):
+        before = None if cov.before is None else cov.before[i]
+        after = None if cov.after is None else cov.after[i]
+        rows.append(f"<tr><td>coverage within {radius:g}σ (nominal {_num(cov.nominal[i], 3)})"
+                    f"</td><td>{_num(before, 3)}</td><td>{_num(after, 3)}</td></tr>")
+    for axis, pair in r.miscalibration_area.items():
         rows.append(_pair_row(f"miscalibration area {axis}", pair))
-    counts = report.get("counts") or {}
-    caption = ", ".join(f"{k} {v}" for k, v in counts.items())
+    caption = ", ".join(f"{k} {v}" for k, v in summary.counts.to_dict().items())
     return (f"<table class='metrics'><caption class='note'>{_e(caption)}</caption>"
             "<tr><th>metric</th><th>before</th><th>after</th></tr>" + "".join(rows) +
             "</table>")
 
 
-def per_class_table(report: dict) -> str:
+def per_class_table(summary: Summary) -> str:
     """Per-class k, matches and ECE/NLL before and after."""
     rows = []
-    for row in report.get("per_class") or []:
-        fb = " (pooled)" if row.get("fallback") else ""
-        rows.append(f"<tr><td>{_e(row.get('class'))}</td><td>{_num(row.get('n'))}</td>"
-                    f"<td>{_num(row.get('tp'))}</td><td>{_num(row.get('k'))}{fb}</td>"
-                    f"<td>{_num(row.get('ece_before'))}</td><td>{_num(row.get('ece_after'))}</td>"
-                    f"<td>{_num(row.get('nll_before'))}</td><td>{_num(row.get('nll_after'))}</td>"
-                    "</tr>")
+    for row in summary.per_class:
+        fb = " (pooled)" if row.fallback else ""
+        rows.append(f"<tr><td>{_e(row.name)}</td><td>{_num(row.n)}</td>"
+                    f"<td>{_num(row.tp)}</td><td>{_num(row.k)}{fb}</td>"
+                    f"<td>{_num(row.ece_before)}</td><td>{_num(row.ece_after)}</td>"
+                    f"<td>{_num(row.nll_before)}</td><td>{_num(row.nll_after)}</td></tr>")
     return ("<table><tr><th>class</th><th>detections</th><th>TP</th><th>k [m²/m]</th>"
             "<th>ECE before</th><th>ECE after</th><th>reg. NLL before</th>"
             "<th>reg. NLL after</th></tr>" + "".join(rows) + "</table>")
+
+
+#: A served level whose coverage misses it by more than this is marked (the service's own
+#: tolerance for a class × range cell; small cells are noisy, their counts are shown).
+COVERAGE_TOLERANCE = 0.04
+
+
+def region_table(summary: Summary, part: str) -> str:
+    """Coverage of the served ellipses per level, overall and per class × distance bin, with
+    the mean ellipse area; cells more than 4 pp off their level are marked."""
+    regions = summary.regions
+    if not regions or not regions.get("coverage"):
+        return ("<p class='note'>This profile's report has no served-region coverage (a "
+                "profile fit before detcal measured it, or no x, y dims).</p>")
+    levels = regions["levels"]
+    cov = regions["coverage"]
+
+    def cells(values: list[float | None]) -> str:
+        out = []
+        for q, v in zip(levels, values, strict=True):
+            off = v is not None and abs(v - q) > COVERAGE_TOLERANCE
+            out.append(f"<td class='{'worse' if off else ''}'>{_num(v, 3)}</td>")
+        return "".join(out)
+
+    def span(rng: list) -> str:
+        lo, hi = rng
+        return f"{lo:g}+ m" if hi is None else f"{lo:g}–{hi:g} m"
+
+    head = "".join(f"<th>{q:.0%}</th>" for q in levels)
+    rows = [f"<tr><td><b>all</b></td><td></td><td>{cov['count']}</td>{cells(cov['overall'])}"
+            "</tr>"]
+    rows += [f"<tr><td>{_e(r['class'])}</td><td>{span(r['distance_range'])}</td>"
+             f"<td>{r['count']}</td>{cells(r['coverage'])}</tr>" for r in cov["rows"]]
+    area = " / ".join(_num(a, 3) for a in regions["mean_area"])
+    gauss = " / ".join(_num(g, 3) for g in regions["gaussian_coverage"])
+    return (f"<p class='note'>{_e(part)}: share of true centres inside the served "
+            f"{_e(regions['method'])} ellipse at each level; mean area {area} m²; Gaussian χ² "
+            f"radii on the same Σ' would cover {gauss}.</p><table><tr><th>class</th>"
+            f"<th>range</th><th>TPs</th>{head}</tr>" + "".join(rows) + "</table>")
 
 
 class DashboardRenderer:
@@ -109,7 +144,8 @@ class DashboardRenderer:
         with self._lock:
             if key in self._plots:
                 return self._plots[key]
-        data = (loaded.profile.report.get("fit") or {}).get("plots") or {}
+        report = ProfileReport.from_dict(loaded.profile.report)
+        data = {} if report is None else report.fit.plots
         if not data:
             out = "<p class='note'>This profile's report has no plot data.</p>"
         else:

@@ -7,16 +7,19 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse
 
+from app.cache import LoadedProfile
 from app.dashboard.page import (
     DashboardRenderer,
     before_after_table,
     per_class_table,
+    region_table,
     render_page,
     uptime,
     versions_table,
 )
 from app.deps import CacheDep, MetricsDep, SettingsDep, StoreDep
 from app.store import NotFoundError
+from calibrators import ProfileReport
 
 router = APIRouter(tags=["dashboard"])
 
@@ -44,13 +47,7 @@ def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: Sett
     report_html = bev_html = versions_html = ""
     if loaded is not None:
         versions_html = versions_table(store.versions(loaded.record.name))
-        fit = loaded.profile.report.get("fit") or {}
-        holdout = loaded.profile.report.get("holdout")
-        report_html = ("<div class='plots'><div><h3>fit part</h3>" + before_after_table(fit)
-                       + "</div>" + (("<div><h3>held-out part</h3>" + before_after_table(holdout)
-                                      + "</div>") if holdout else "") + "</div>"
-                       + "<h3>Per class</h3>" + per_class_table(fit)
-                       + renderer.report_plots(loaded))
+        report_html = _report_html(loaded, renderer)
         bev_html = renderer.bev(loaded, request.app.state.detectors, settings.dashboard_sensor,
                                 settings.dashboard_seed)
     page = render_page(
@@ -59,3 +56,20 @@ def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: Sett
         default_name=settings.default_profile, loaded=loaded, versions_html=versions_html,
         report_html=report_html, bev_html=bev_html, jobs=store.recent_jobs(8))
     return HTMLResponse(page)
+
+
+def _report_html(loaded: LoadedProfile, renderer: DashboardRenderer) -> str:
+    """Before/after tables (fit and held-out part), served-region coverage per class × range
+    (held-out part when there is one) and the plots of the active profile's report."""
+    report = ProfileReport.from_dict(loaded.profile.report)
+    if report is None:
+        return "<p class='note'>This profile has no report (it was not fit by detcal).</p>"
+    held = report.holdout
+    tables = ("<div class='plots'><div><h3>fit part</h3>" + before_after_table(report.fit)
+              + "</div>" + (("<div><h3>held-out part</h3>" + before_after_table(held)
+                             + "</div>") if held is not None else "") + "</div>")
+    part = "held-out part" if held is not None else "fit part (no held-out part)"
+    return (tables + "<h3>Per class</h3>" + per_class_table(report.fit)
+            + "<h3 id='coverage'>Served ellipses: coverage per class × range</h3>"
+            + region_table(held if held is not None else report.fit, part)
+            + renderer.report_plots(loaded))

@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 from detectors.report import tables
+from detectors.report.honest import LEVELS, honest_markdown
 from detectors.report.rows import EXPECTED_MD, Row
 
 if TYPE_CHECKING:
@@ -53,6 +54,7 @@ def sensor_section(r: SensorReport, options: ReportOptions) -> str:
              f"TS+Mod; T = {r.temperature:.3f}) with Σ' = Σ_layers + k_c·d·I.",
              "### Class-wise, vanilla", tables.class_table(r.vanilla_classes),
              "### Class-wise, Depth Scaling", tables.class_table(r.calibrated_classes),
+             "" if r.honest is None else honest_markdown(r.honest, tables.number),
              "### Attention spread (seed 000)"]
     if r.attention is not None:
         parts.append(tables.attention_tables(r.attention))
@@ -146,7 +148,38 @@ def readme(reports: Sequence[SensorReport], command: str, seconds: float,
                 + (", ".join(cached) if cached else "none (cold run)") + ".")
     body = [r.markdown for r in reports]
     tail = ["## Deep ensembles and sub-ensembles", DE_COMMANDS]
-    return "\n\n".join(head + [_overview(reports), _discussion(reports)] + body + tail) + "\n"
+    return "\n\n".join(head + [_overview(reports), _honest_overview(reports),
+                               _discussion(reports)] + body + tail) + "\n"
+
+
+def _honest_overview(reports: Sequence[SensorReport]) -> str:
+    """One line per sensor: what detcal's default profile buys over global TS and Gaussian
+    ellipses (class-wise ECE over classes with >= 500 test TPs)."""
+    levels = " / ".join(f"{q:.0%}" for q in LEVELS)
+    lines = ["## Honest uncertainty: detcal's default profile",
+             f"| sensor | chosen stages | ECE TS → default | worst class ECE TS → default "
+             f"| served coverage at {levels}: thesis DS → default | mean MD DS → shrinkage "
+             f"(E = {EXPECTED_MD:.3f}) | mAP raw → default |",
+             "|---|---|---|---|---|---|---|"]
+    for r in reports:
+        h = r.honest
+        if h is None or h.default_row is None or h.ts_row is None:
+            continue
+        big = [c for c in h.classes if c.n_tp >= 500]
+        worst = (max((c.ece_ts or 0.0) for c in big), max((c.ece_auto or 0.0) for c in big)
+                 ) if big else (None, None)
+        shrink = _find(h.rows, "Shrinkage")
+        ds = _find(r.rows, "Depth Scaling")
+        thesis, default = h.regions[0], h.regions[-1]
+        lines.append(
+            f"| {r.sensor} | {' + '.join(h.chosen)} | {h.ts_row.ece:.4f} → "
+            f"{h.default_row.ece:.4f} | {tables.number(worst[0])} → {tables.number(worst[1])} "
+            f"| {' / '.join(f'{c:.3f}' for c in thesis.coverage)} → "
+            f"{' / '.join(f'{c:.3f}' for c in default.coverage)} | "
+            f"{tables.number(None if ds is None else ds.mean_md)} → "
+            f"{tables.number(None if shrink is None else shrink.mean_md)} | "
+            f"{_find(r.rows, 'Vanilla').mean_ap:.3f} → {h.default_row.mean_ap:.3f} |")
+    return "\n".join(lines)
 
 
 def _overview(reports: Sequence[SensorReport]) -> str:

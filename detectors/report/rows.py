@@ -159,8 +159,10 @@ def class_rows(dump: Dump, scores: np.ndarray, covariances: np.ndarray,
 
 def fit_profiles(val: Dump) -> Profiles:
     """Fit TS and TS+Mod (each with depth scaling on the layer spread) on `val`."""
-    ts = fit_profile(val, cov_source="layers")
-    ts_mod = fit_profile(val, cov_source="layers", modulation=True)
+    thesis = {"cov_source": "layers", "score_method": "temperature", "cov_method": "depth",
+              "region_method": "gaussian", "calibration": 0.0}
+    ts = fit_profile(val, **thesis)
+    ts_mod = fit_profile(val, modulation=True, **thesis)
     mod = CalibrationProfile(classes=val.classes, score_mode=val.score_mode, temperature=1.0,
                              modulation=True, cov_source="layers")
     nll = {name: p.report["fit"]["classification"]["nll"]["after"]

@@ -28,6 +28,7 @@ from calibrators import (
 from detectors.report import plots
 from detectors.report.attention import AttentionStats, attention_stats
 from detectors.report.dumps import merged_sampling_dump, vanilla_dump
+from detectors.report.honest import HonestSection, honest_section
 from detectors.report.rows import (
     ClassRow,
     Row,
@@ -70,6 +71,7 @@ class SensorReport:
     vanilla_classes: list[ClassRow] = field(default_factory=list)
     calibrated_classes: list[ClassRow] = field(default_factory=list)
     attention: AttentionStats | None = None
+    honest: HonestSection | None = None
     covariance_rows: list[Row] = field(default_factory=list)
     figures: list[Path] = field(default_factory=list)
     best_profile: str = ""
@@ -178,6 +180,8 @@ def _rows(report: SensorReport, options: ReportOptions, val_dump: Dump, test_dum
                          profiles.best, vanilla_ms, True, m)]
     report.rows = rows
     log(f"  {report.sensor}: {len(rows)} rows measured")
+    report.honest = honest_section(val_dump, test_dump, m, vanilla_ms, profiles.best)
+    log(f"  {report.sensor}: beyond-the-thesis rows measured")
 
     calibrated = apply_profile(test_dump, profiles.best)
     raw_cov = layer_spread(test_dump.det_boxes, ("x", "y"))

@@ -79,6 +79,8 @@ def test_dashboard_renders_plots_without_console_errors(server, http, fitted, tm
     for label in ("Reliability (all classes)", "Average calibration curves", "Residual plot",
                   "Reliability per class"):
         assert f'aria-label="{label}"' in dom, label
+    assert "Served ellipses: coverage per class × range" in dom   # the served levels hold?
+    assert re.search(r"<th>50%</th><th>90%</th><th>95%</th><th>99%</th>", dom)
     assert not re.search(r"""(src|href)=["']?(https?:)?//""", dom)   # offline: nothing fetched
     assert shot.exists() and shot.stat().st_size > 10_000
     if os.environ.get("DETCAL_UPDATE_SCREENSHOT"):
