@@ -5,12 +5,15 @@ has a score `m = sqrt(rᵀ Σ'⁻¹ r)`. For a group of `n` exchangeable scores,
 level `q` is the `⌈(n+1)·q⌉`-th smallest score (inf when that rank exceeds n), and a new
 point of the group falls within it with probability >= q (and < q + 1/(n+1) without ties).
 
-Groups: class × distance bin (`calibrators.levels`). A cell with fewer than `min_group`
-scores serves from a window of neighbouring bins of its class, grown one bin at a time
-towards the fuller neighbour (ties: nearer the ego) until it holds `min_group`; a class too
-small as a whole serves from all classes of that bin, and if that is too small too, from all
-scores. Each cell records the group serving it and why ("own", "merged_bins",
-"pooled_classes", "global"); a class unseen at fit is served as a class with no scores.
+Groups: a partition of the class × distance-bin cells (`calibrators.levels`), so that every
+calibration score belongs to exactly the group that serves its cell (what the guarantee
+needs: a group's radius is calibrated on the very cells it serves). Within a class, a bin
+with fewer than `min_group` scores is merged with its smaller adjacent neighbour (repeatedly)
+until every contiguous run of bins holds `min_group`; a class too small as a whole joins the
+other small classes, pooled per run of bins the same way; if even their total is below
+`min_group` they are served by the group of all scores (no per-group guarantee for them).
+Each cell records why ("own", "merged_bins", "pooled_classes", "global"). A class unknown
+at fit is served by the group of all scores too.
 
 Each group stores its order statistics at a set of ranks: all of them for `n <= n_exact`,
 else at most `max_ranks`, every rank in the top tail and then spaced by at most 3 % of the
@@ -116,21 +119,19 @@ class ConformalRegions:
         counts = np.zeros((len(known), n_bins), dtype=np.int64)
         np.add.at(counts, (cls, bins), 1)
 
+        keys, reasons = _partition(counts, min_group)
         index: dict[tuple, int] = {}
         self.groups_: list[ConformalGroup] = []
-        rows = [*counts, np.zeros(n_bins, dtype=np.int64)]  # the last: an unseen class
-        serving = np.zeros((len(rows), n_bins), dtype=np.int64)
-        self.reasons_ = []
-        for c, row in enumerate(rows):
-            reasons = []
-            for b in range(n_bins):
-                key, reason = _serving_group(c, b, row, counts.sum(axis=0), min_group)
+        serving = np.zeros((len(known) + 1, n_bins), dtype=np.int64)  # last row: unknown
+        small = [c for c in range(len(known)) if keys[c][0][0] == "pool"]
+        for c, row in enumerate([*keys, [("all", 0, n_bins - 1)] * n_bins]):
+            for b, key in enumerate(row):
                 if key not in index:
                     index[key] = len(self.groups_)
-                    self.groups_.append(_group(key, known, s, cls, bins, n_exact, max_ranks))
+                    self.groups_.append(_group(key, known, s, cls, bins, small, n_exact,
+                                               max_ranks))
                 serving[c, b] = index[key]
-                reasons.append(reason)
-            self.reasons_.append(reasons)
+        self.reasons_ = [*reasons, ["global"] * n_bins]
         self.classes_, self.edges_, self.counts_, self.serving_ = known, edges, counts, serving
         return self
 
@@ -228,41 +229,65 @@ class ConformalRegions:
                 f"{prefix}n": group.n}
 
 
-def _serving_group(c: int, b: int, row: np.ndarray, all_counts: np.ndarray, min_group: int
-                   ) -> tuple[tuple, str]:
-    """(group key, reason) serving cell (class c, bin b), from the class's counts `row [B]`
-    and all classes' `all_counts [B]`. Keys: ("class", c, lo, hi) or ("all", lo, hi)."""
-    if row[b] >= min_group:
-        return ("class", c, b, b), "own"
-    lo = hi = b
-    total = int(row[b])
-    while total < min_group and (lo > 0 or hi < row.size - 1):
-        left = row[lo - 1] if lo > 0 else -1
-        right = row[hi + 1] if hi < row.size - 1 else -1
-        if left >= right:
-            lo -= 1
-            total += int(left)
-        else:
-            hi += 1
-            total += int(right)
-    if total >= min_group:
-        return ("class", c, lo, hi), "merged_bins"
-    if all_counts[b] >= min_group:
-        return ("all", b, b), "pooled_classes"
-    return ("all", 0, row.size - 1), "global"
+def _partition(counts: np.ndarray, min_group: int) -> tuple[list[list[tuple]], list[list[str]]]:
+    """Group key and reason of every cell of `counts [C, B]`: a partition (module docstring).
+    Keys: ("class", c, lo, hi) for bins lo..hi of class c; ("pool", lo, hi) for bins lo..hi
+    of the classes too small on their own; ("all", 0, B - 1) for all scores."""
+    n_classes, n_bins = counts.shape
+    keys: list[list[tuple]] = [[] for _ in range(n_classes)]
+    reasons: list[list[str]] = [[] for _ in range(n_classes)]
+    small = [c for c in range(n_classes) if counts[c].sum() < min_group]
+    for c in range(n_classes):
+        if c in small:
+            continue
+        for lo, hi in _runs(counts[c], min_group):
+            keys[c] += [("class", c, lo, hi)] * (hi - lo + 1)
+            reasons[c] += ["own" if lo == hi else "merged_bins"] * (hi - lo + 1)
+    pooled = counts[small].sum(axis=0) if small else np.zeros(n_bins, dtype=np.int64)
+    enough = pooled.sum() >= min_group
+    runs = _runs(pooled, min_group) if enough else [(0, n_bins - 1)]
+    for c in small:
+        for lo, hi in runs:
+            keys[c] += [("pool" if enough else "all", lo, hi)] * (hi - lo + 1)
+            reasons[c] += ["pooled_classes" if enough else "global"] * (hi - lo + 1)
+    return keys, reasons
+
+
+def _runs(row: np.ndarray, min_group: int) -> list[tuple[int, int]]:
+    """Contiguous runs (lo, hi) of bins covering `row [B]`, each holding >= `min_group`
+    (the smallest run merged into its smaller neighbour until all do; needs
+    `row.sum() >= min_group`, else one run)."""
+    runs = [(b, b) for b in range(row.size)]
+
+    def total(run: tuple[int, int]) -> int:
+        return int(row[run[0]:run[1] + 1].sum())
+
+    while len(runs) > 1:
+        i = min(range(len(runs)), key=lambda j: (total(runs[j]), j))
+        if total(runs[i]) >= min_group:
+            break
+        left = total(runs[i - 1]) if i > 0 else None
+        right = total(runs[i + 1]) if i < len(runs) - 1 else None
+        j = i - 1 if right is None or (left is not None and left <= right) else i + 1
+        lo, hi = min(i, j), max(i, j)
+        runs[lo:hi + 1] = [(runs[lo][0], runs[hi][1])]
+    return runs
 
 
 def _group(key: tuple, known: list, s: np.ndarray, cls: np.ndarray, bins: np.ndarray,
-           n_exact: int, max_ranks: int) -> ConformalGroup:
-    """The stored table of the group `key` (see `_serving_group`)."""
+           small: list[int], n_exact: int, max_ranks: int) -> ConformalGroup:
+    """The stored table of the group `key` (see `_partition`)."""
     lo, hi = key[-2:]
     mask = (bins >= lo) & (bins <= hi)
     if key[0] == "class":
         mask &= cls == key[1]
+    elif key[0] == "pool":
+        mask &= np.isin(cls, small)
     values = np.sort(s[mask])
     ranks = _stored_ranks(values.size, n_exact, max_ranks)
     label = known[key[1]] if key[0] == "class" else None
-    return ConformalGroup(label, (int(lo), int(hi)), int(values.size), ranks, values[ranks - 1])
+    return ConformalGroup(label, (int(lo), int(hi)), int(values.size), ranks,
+                          values[ranks - 1] if values.size else values)
 
 
 def _stored_ranks(n: int, n_exact: int, max_ranks: int) -> np.ndarray:

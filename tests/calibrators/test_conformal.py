@@ -113,23 +113,38 @@ def test_small_groups_are_merged_then_pooled_and_recorded():
     regions = ConformalRegions(min_group=100).fit(s, cls, d,
                                                   all_classes=["car", "ped", "bus", "bike"])
     table = {(row["class"], row["bin"]): row for row in regions.serving_table()}
-    assert [table["car", b]["reason"] for b in range(3)] == ["own", "merged_bins", "own"]
-    assert table["car", 1]["group_bins"] == [0, 1] and table["car", 1]["group_n"] == 340
-    assert [table["ped", b]["reason"] for b in range(3)] == ["pooled_classes", "global",
-                                                             "pooled_classes"]
-    assert table["ped", 0]["group_class"] is None and table["ped", 0]["group_n"] == 360
-    assert table["ped", 1]["group_n"] == s.size
-    assert [table["bike", b]["reason"] for b in range(3)] == [table["bus", b]["reason"]
-                                                              for b in range(3)]
+    # car [300, 40, 150]: bin 1 joins its smaller neighbour, bin 2; that run serves both
+    assert [table["car", b]["reason"] for b in range(3)] == ["own", "merged_bins",
+                                                             "merged_bins"]
+    assert table["car", 1]["group_bins"] == table["car", 2]["group_bins"] == [1, 2]
+    assert table["car", 2]["group_n"] == 190
+    # ped (90), bus (5), bike (0) are too small; pooled they hold 95 < 100: all scores serve
+    for name in ("ped", "bus", "bike"):
+        assert [table[name, b]["reason"] for b in range(3)] == ["global"] * 3
+        assert table[name, 0]["group_class"] is None and table[name, 0]["group_n"] == s.size
     assert table["car", 2]["distance_range"] == [30.0, None]
-    # the merged group's radius is the order statistic of car scores in bins 0 and 1
-    car01 = np.sort(s[(cls == "car") & (d < 30)])
-    assert regions.radius(0.9, ["car"], [20.0])[0] == car01[math.ceil(341 * 0.9) - 1]
-    # an unseen class is served like a class with no scores
+    # the merged group's radius is the order statistic of car scores in bins 1 and 2
+    car12 = np.sort(s[(cls == "car") & (d >= 15)])
+    assert regions.radius(0.9, ["car"], [20.0])[0] == car12[math.ceil(191 * 0.9) - 1]
+    # an unseen class is served by all scores
     np.testing.assert_array_equal(regions.radii(LEVELS, ["zzz"] * 3, [1.0, 20.0, 40.0]),
                                   regions.radii(LEVELS, ["bike"] * 3, [1.0, 20.0, 40.0]))
     assert regions.groups(["ped"], [20.0]) == [{"class": None, "bins": [0, 2], "n": s.size,
                                                 "reason": "global"}]
+
+
+def test_groups_partition_the_scores_so_each_group_covers_its_own_cells():
+    s, cls, d = small_groups()
+    regions = ConformalRegions(min_group=50).fit(s, cls, d, all_classes=["car", "ped", "bus"])
+    served = regions._group_of(cls, d)
+    # ped [60, 20, 10] is one run; bus (5) alone is too small and pooled small classes too
+    table = {(row["class"], row["bin"]): row for row in regions.serving_table()}
+    assert {table["ped", b]["group_bins"][0] for b in range(3)} == {0}
+    for g in np.unique(served[cls != "bus"]):
+        mine = served == g
+        assert mine.sum() == regions.groups_[g].n           # a group = the scores it serves
+        r = regions.groups_[g].radius(np.array([0.5, 0.9]))
+        assert ((s[mine][:, None] <= r).mean(axis=0) >= [0.5, 0.9]).all()
 
 
 @pytest.mark.parametrize("levels", [[0.0], [1.0], [float("nan")], [0.5, 0.5], [],
