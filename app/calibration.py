@@ -4,8 +4,11 @@ Detections of one request may mix evidence forms (logits, per-layer logits, per-
 one score + label) and uncertainty forms (covariance, layer boxes, none); they are grouped by
 form and shape (`GroupKey`), each group goes through `CalibrationProfile.calibrate` once, and
 the rows come back in request order. Every check against the profile (column width, the
-covariance the profile's source needs, PSD, modulation's layers) lives in the library: a
-`FieldError` it raises is mapped here to the request's field path (`locate`) and a 422.
+covariance the profile's source needs, PSD, modulation's layers, the served levels) lives in
+the library: a `FieldError` it raises is mapped here to the request's field path (`locate`,
+or the request's `levels` / `ellipse_confidence`) and a 422. A calibrated number that is not
+finite (inputs so large that Σ' or an ellipse overflows float64) is a 422 at the detection's
+`covariance` (or `box`), never a non-JSON `Infinity`.
 """
 
 from __future__ import annotations
@@ -19,8 +22,11 @@ import numpy as np
 
 from app.cache import LoadedProfile
 from app.errors import RequestError
-from app.schemas.calibrate import DetectionIn, FrameIn
+from app.schemas.calibrate import DEFAULT_LEVELS, DetectionIn, FrameIn
 from calibrators.exceptions import FieldError
+from calibrators.io.nuscenes import ellipses_json
+from calibrators.levels import check_levels
+from calibrators.serving import CalibratedDetections
 
 _EPS = 1e-12
 
@@ -83,12 +89,21 @@ def _default_locate(fi: int, di: int) -> list[str | int]:
 
 
 def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
-                     confidence: float, locate: Locate = _default_locate,
+                     confidence: float, locate: Locate = _default_locate, *,
+                     levels: Sequence[float] = DEFAULT_LEVELS, options_in: str = "body",
                      ) -> list[list[dict[str, object]]]:
-    """Calibrated detection rows (response dicts) per frame, in request order.
+    """Calibrated detection rows (response dicts) per frame, in request order, with the
+    ellipse at `confidence` and the regions at `levels`.
 
-    `locate(frame_index, detection_index)` gives the field path used in error messages.
+    `locate(frame_index, detection_index)` gives the field path used in error messages;
+    `options_in` is where the request carries `levels` and `ellipse_confidence` ("body" or
+    "query").
     """
+    try:
+        levels = check_levels(levels).tolist()
+    except FieldError as exc:
+        loc = [options_in, "levels"] + ([] if exc.row is None else [exc.row])
+        raise RequestError(loc, str(exc)) from None
     prof = loaded.profile
     groups: dict[GroupKey, _Group] = defaultdict(_Group)
     flat: list[DetectionIn] = []
@@ -113,10 +128,14 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
 
     rows: list[dict[str, object] | None] = [None] * len(flat)
     for key, g in groups.items():
+        kwargs = _arrays(key, g, confidence)
         try:
-            _run_group(loaded, key, g, confidence, flat, rows)
+            res = prof.calibrate(**kwargs, levels=levels)  # type: ignore[arg-type]
         except FieldError as exc:
+            if exc.field == "levels":
+                raise _level_error(exc, loaded, kwargs, g, where, locate, options_in) from None
             raise _located(exc, key, g, where, locate, loaded.record.ref) from None
+        _rows(res, prof.classes, g, confidence, flat, rows)
     out: list[list[dict[str, object]]] = [[] for _ in frames]
     for i, row in enumerate(rows):
         out[where[i][0]].append(row)  # type: ignore[arg-type]
@@ -144,7 +163,7 @@ def _evidence(det: DetectionIn, loc: list[str | int], classes: Sequence[str], mo
 
 
 #: Library argument -> request field (`logits` is whatever evidence field the group used).
-_REQUEST_FIELD = {"scores": "score", "labels": "label", "boxes": "box",
+_REQUEST_FIELD = {"scores": "score", "labels": "label", "boxes": "box", "distances": "box",
                   "covariances": "covariance", "layer_boxes": "layer_boxes",
                   "layer_logits": "layer_logits"}
 
@@ -161,9 +180,8 @@ def _located(exc: FieldError, key: GroupKey, g: _Group, where: list[tuple[int, i
     return _mismatch([*locate(fi, di), name], f"profile {ref}: {exc}")
 
 
-def _run_group(loaded: LoadedProfile, key: GroupKey, g: _Group, confidence: float,
-               flat: list[DetectionIn], rows: list[dict[str, object] | None]) -> None:
-    prof = loaded.profile
+def _arrays(key: GroupKey, g: _Group, confidence: float) -> dict[str, object]:
+    """Keyword arguments of `CalibrationProfile.calibrate` for the detections of one group."""
     kwargs: dict[str, object] = {
         "boxes": np.asarray(g.boxes, dtype=np.float64),
         "ego_xy": np.asarray(g.ego_xy, dtype=np.float64),
@@ -179,8 +197,30 @@ def _run_group(loaded: LoadedProfile, key: GroupKey, g: _Group, confidence: floa
         kwargs["covariances"] = np.asarray(g.covariances, dtype=np.float64)
     if key.n_box_layers:
         kwargs["layer_boxes"] = np.asarray(g.layer_boxes, dtype=np.float64)
-    res = prof.calibrate(**kwargs)  # type: ignore[arg-type]
-    classes = prof.classes
+    return kwargs
+
+
+def _level_error(exc: FieldError, loaded: LoadedProfile, kwargs: dict[str, object],
+                 g: _Group, where: list[tuple[int, int]], locate: Locate, options_in: str
+                 ) -> RequestError:
+    """A level the profile cannot serve for a detection of the group (a conformal group with
+    too few calibration points): at `levels`, or at `ellipse_confidence` when that level alone
+    cannot be served."""
+    field = "levels"
+    try:
+        loaded.profile.calibrate(**kwargs)  # type: ignore[arg-type]
+    except FieldError as alone:
+        if alone.field == "levels":
+            field = "ellipse_confidence"
+    row = exc.row if exc.row is not None and 0 <= exc.row < len(g.index) else 0
+    path = "/".join(str(p) for p in locate(*where[g.index[row]])[1:])
+    return _mismatch([options_in, field], f"profile {loaded.record.ref}: {exc}; that detection "
+                                          f"is {path}")
+
+
+def _rows(res: CalibratedDetections, classes: Sequence[str], g: _Group, confidence: float,
+          flat: list[DetectionIn], rows: list[dict[str, object] | None]) -> None:
+    """Response rows of one calibrated group, written at their request positions."""
     labels = res.labels.tolist()
     scores = res.scores.tolist()
     raw = res.scores_raw.tolist()
@@ -189,6 +229,7 @@ def _run_group(loaded: LoadedProfile, key: GroupKey, g: _Group, confidence: floa
     el = res.ellipses
     if el is not None:
         major, minor, angle = el.semi_major.tolist(), el.semi_minor.tolist(), el.angle.tolist()
+    regions = ellipses_json(res)
     dist = res.distances.tolist()
     for j, i in enumerate(g.index):
         rows[i] = {
@@ -203,5 +244,6 @@ def _run_group(loaded: LoadedProfile, key: GroupKey, g: _Group, confidence: floa
             "ellipse": None if el is None else {
                 "semi_major": major[j], "semi_minor": minor[j], "angle": angle[j],
                 "confidence": confidence},
+            "ellipses": regions[j],
             "distance": dist[j],
         }

@@ -11,6 +11,7 @@ import hashlib
 import json
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -18,6 +19,9 @@ import numpy as np
 
 from app.cli import CliError
 from calibrators.options import FitOptions
+
+#: Ellipse levels `detcal calibrate` writes when --levels is not given (as the service's).
+DEFAULT_LEVELS = (0.95,)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -47,10 +51,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     cal = subparsers.add_parser(
         "calibrate", help="calibrate detections offline into a nuScenes results JSON",
         description="Apply a profile to an NPZ dump or a nuScenes results JSON and write a "
-                    "nuScenes results JSON with the calibrated detection_score and the raw "
-                    "score and calibrated covariance as extra keys.")
+                    "nuScenes results JSON with the calibrated detection_score and, as extra "
+                    "keys, the raw score, the calibrated covariance and the ellipses at "
+                    "--levels.")
     cal.add_argument("file", metavar="FILE", help="NPZ dump or nuScenes results JSON")
     cal.add_argument("--profile", required=True, help="profile JSON to apply")
+    cal.add_argument("--levels", nargs="+", metavar="Q", default=list(DEFAULT_LEVELS),
+                     help="coverage levels of the ellipses written per result, each in (0, 1), "
+                          "at most 20 (default: %(default)s)")
     cal.add_argument("--nuscenes-gt", metavar="GT.json",
                      help="ground-truth JSON giving the frames' ego positions (results JSON)")
     cal.add_argument("--out", default="-", help="output JSON (default: stdout)")
@@ -126,38 +134,75 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 
 def run_calibrate(args: argparse.Namespace) -> int:
-    """`detcal calibrate`: write a calibrated nuScenes results JSON."""
+    """`detcal calibrate`: write a calibrated nuScenes results JSON with ellipses per level."""
+    from calibrators.io import calibrate_results_document
+    from calibrators.io.nuscenes import ellipses_json
+
+    levels = _levels(args.levels)
     profile = load_profile(args.profile)
     path = _existing(args.file)
     if path.suffix.lower() == ".json":
-        doc = _calibrate_results_json(path, profile, args.nuscenes_gt)
-        _write_text(args.out, json.dumps(doc, allow_nan=False))
-        return 0
+        doc, out = _calibrate_results_json(path, profile, args.nuscenes_gt, levels)
+    else:
+        doc, out = _calibrate_dump(path, profile, levels)
+    calibrated = calibrate_results_document(doc, out.scores, out.covariances,
+                                            cov_dims=tuple(profile.cov_dims),
+                                            ellipses=ellipses_json(out))
+    _write_text(args.out, json.dumps(calibrated, allow_nan=False))
+    return 0
+
+
+def _levels(values: list[str]) -> list[float]:
+    """`--levels` as floats, checked by the library (at most 20, distinct, in (0, 1))."""
+    from calibrators.exceptions import FieldError
+    from calibrators.levels import check_levels
+
+    try:
+        return check_levels([float(v) for v in values], "--levels").tolist()
+    except ValueError as exc:
+        text = str(exc) if isinstance(exc, FieldError) else f"must be numbers in (0, 1): {exc}"
+        raise CliError(text if text.startswith("--levels") else f"--levels {text}") from None
+
+
+def _served(calibrate: Callable[..., Any], **arrays: Any) -> Any:
+    """`calibrate(**arrays)` (`apply_profile` or `CalibrationProfile.calibrate`); a level the
+    profile cannot serve (a conformal group with too few calibration points) is a CliError
+    naming --levels."""
+    from calibrators.exceptions import FieldError
+
+    try:
+        return calibrate(**arrays)
+    except FieldError as exc:
+        if exc.field == "levels":
+            raise CliError(f"--levels: {exc}") from None
+        raise
+
+
+def _calibrate_dump(path: Path, profile: Any, levels: list[float] | None) -> tuple[dict, Any]:
+    """The dump's results document (raw scores, as `save_nuscenes` writes it) and the
+    calibrated detections of its final layer, in the document's box order."""
     from calibrators import apply_profile
     from calibrators.io import save_nuscenes
 
     dump, _ = load_input(str(path), None)
-    out = apply_profile(dump, profile)
+    out = _served(apply_profile, dump=dump, profile=profile, levels=levels)
     with tempfile.TemporaryDirectory() as tmp:
         results = Path(tmp) / "results.json"
-        # Σ' is over the profile's dims, which need not be the dump's cov_dims.
-        save_nuscenes(dump, results, scores=out.scores, covariances=out.covariances,
-                      cov_dims=tuple(profile.cov_dims))
-        _write_text(args.out, results.read_text(encoding="utf-8").rstrip("\n"))
-    return 0
+        save_nuscenes(dump, results)
+        return json.loads(results.read_bytes()), out
 
 
-def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None) -> dict:
-    """The results document with every box's score calibrated, other keys kept.
+def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None,
+                            levels: list[float] | None) -> tuple[dict, Any]:
+    """The results document as read and its boxes calibrated, in the document's box order.
 
-    Each box gets `detection_score` (calibrated), `detection_score_raw` and `covariance`
-    (Σ' over the profile's dims); the document's meta gains `cov_dims`. Boxes without
-    `detection_logits` are calibrated from their score, `sigmoid(logit(p) / T)`. Without
-    `--nuscenes-gt`, distances are measured from the boxes' `ego_translation` if they have
-    one, else from the origin (ego-frame results).
+    Boxes without `detection_logits` are calibrated from their score, `sigmoid(logit(p) / T)`
+    (or the profile's per-class calibrator). Without `--nuscenes-gt`, distances are measured
+    from the boxes' `ego_translation` if they have one, else from the origin (ego-frame
+    results).
     """
     from calibrators import apply_profile
-    from calibrators.io import calibrate_results_document, load_nuscenes
+    from calibrators.io import load_nuscenes
 
     try:
         doc = json.loads(path.read_bytes())
@@ -169,15 +214,12 @@ def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None) -> di
     gt = None if gt_path is None else str(_existing(gt_path))
     dump = load_nuscenes(str(path), gt, classes=profile.classes)
     if any("detection_logits" in box for box in boxes):
-        out = apply_profile(dump, profile)
-    else:
-        out = profile.calibrate(
-            scores=np.array([float(b["detection_score"]) for b in boxes]),
-            labels=dump.det_labels, boxes=dump.final_boxes,
-            covariances=dump.det_cov if profile.cov_source == "given" else None,
-            ego_xy=dump.ego_xy(dump.det_frame))
-    return calibrate_results_document(doc, out.scores, out.covariances,
-                                      cov_dims=tuple(profile.cov_dims))
+        return doc, _served(apply_profile, dump=dump, profile=profile, levels=levels)
+    return doc, _served(
+        profile.calibrate, scores=np.array([float(b["detection_score"]) for b in boxes]),
+        labels=dump.det_labels, boxes=dump.final_boxes,
+        covariances=dump.det_cov if profile.cov_source == "given" else None,
+        ego_xy=dump.ego_xy(dump.det_frame), levels=levels)
 
 
 # -- helpers ---------------------------------------------------------------------------------

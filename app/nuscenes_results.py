@@ -1,10 +1,11 @@
 """Calibrate a nuScenes results document: boxes -> detections (score + class name), and back.
 
 Each box keeps every key it came with; `detection_score` becomes the calibrated score and
-the box gains `detection_score_raw`, `covariance` (calibrated, over the profile's dims) and
-`ellipse`. With `detection_logits`, the label is their arg-max (as the dump formats
-define). The document gains a top-level `calibration` key naming the profile version.
-Keys the devkit does not know are ignored by it.
+the box gains `detection_score_raw`, `covariance` (calibrated, over the profile's dims),
+`ellipse` and `ellipses` (one per requested level, as in POST /v1/calibrate). With
+`detection_logits`, the label is their arg-max (as the dump formats define). The document
+gains a top-level `calibration` key naming the profile version. Keys the devkit does not know
+are ignored by it.
 """
 
 from __future__ import annotations
@@ -42,9 +43,10 @@ def box_to_detection(box: NuScenesBox, loc: Sequence[str | int]) -> DetectionIn:
         covariance=box.covariance)
 
 
-def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: float
-                      ) -> tuple[dict[str, Any], int]:
-    """The calibrated results document and the number of boxes calibrated."""
+def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: float,
+                      levels: Sequence[float]) -> tuple[dict[str, Any], int]:
+    """The calibrated results document and the number of boxes calibrated (`levels`: the
+    query's, checked by `calibrate_frames`)."""
     tokens = list(doc.results)
 
     def locate(fi: int, di: int) -> list[str | int]:
@@ -54,7 +56,8 @@ def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: f
         frame_id=t, ego_translation=None,
         detections=[box_to_detection(b, locate(fi, di)) for di, b in enumerate(doc.results[t])])
         for fi, t in enumerate(tokens)]
-    rows = calibrate_frames(loaded, frames, confidence, locate=locate)
+    rows = calibrate_frames(loaded, frames, confidence, locate=locate, levels=levels,
+                            options_in="query")
     n = 0
     results: dict[str, list[dict[str, Any]]] = {}
     for token, frame_rows in zip(tokens, rows, strict=True):
@@ -66,6 +69,7 @@ def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: f
             item["detection_score_raw"] = row["score_raw"]
             item["covariance"] = row["covariance"]
             item["ellipse"] = row["ellipse"]
+            item["ellipses"] = row["ellipses"]
             out.append(item)
         n += len(out)
         results[token] = out

@@ -105,15 +105,36 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
     served = [float(confidence)] + ([] if wanted is None else
                                     [float(q) for q in wanted if q != confidence])
     regions, radii, method, groups = _regions(profile, cov, distances, labels_, served)
-    return CalibratedDetections(labels=labels_, scores=scores_, scores_raw=raw,
+    out = CalibratedDetections(labels=labels_, scores=scores_, scores_raw=raw,
                                 class_scores=class_scores, covariances=cov,
                                 ellipses=regions.get(float(confidence)),
                                 distances=distances,
-                                regions={} if wanted is None
+                                regions={} if wanted is None or not regions
                                 else {float(q): regions[float(q)] for q in wanted},
                                 region_method=method, region_groups=groups,
-                                region_radii={} if wanted is None
+                                region_radii={} if wanted is None or not radii
                                 else {float(q): radii[float(q)] for q in wanted})
+    _check_finite(out, covariances is not None)
+    return out
+
+
+def _check_finite(res: CalibratedDetections, given_cov: bool) -> None:
+    """A FieldError at the first detection with a calibrated number that is not finite (finite
+    but huge inputs can overflow float64): at its box when its distance overflowed or it gave
+    no covariance, else at its covariance."""
+    n = len(res)
+    served = [res.scores, res.distances, res.covariances,
+              *(res.ellipses or ()), *(a for region in res.regions.values() for a in region)]
+    bad = np.zeros(n, dtype=bool)
+    for arr in served:
+        bad |= ~np.isfinite(np.asarray(arr, dtype=np.float64).reshape(n, -1)).all(axis=1)
+    if not bad.any():
+        return
+    row = int(np.argmax(bad))
+    field = "boxes" if not np.isfinite(res.distances[row]) or not given_cov else "covariances"
+    raise FieldError(field, f"the calibrated covariance or ellipse overflows float64 (distance "
+                            f"{res.distances[row]:.3g} m): the box and covariance must be "
+                            f"of a physical scale", row=row)
 
 
 def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,

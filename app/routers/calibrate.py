@@ -11,7 +11,7 @@ from app.body import body_doc, json_body, json_response
 from app.calibration import calibrate_frames
 from app.deps import CacheDep, MetricsDep, SettingsDep
 from app.nuscenes_results import calibrate_results
-from app.schemas.calibrate import CalibrateRequest, CalibrateResponse
+from app.schemas.calibrate import DEFAULT_LEVELS, LEVELS_TEXT, CalibrateRequest, CalibrateResponse
 from app.schemas.common import ErrorResponse
 from app.schemas.nuscenes import NuScenesResults
 
@@ -26,7 +26,7 @@ def calibrate(body: Annotated[CalibrateRequest, Depends(json_body(CalibrateReque
               cache: CacheDep, settings: SettingsDep, metrics: MetricsDep) -> Response:
     """Calibrate raw detections with the active (or a named) profile version."""
     loaded = cache.resolve(body.profile, settings.default_profile)
-    rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence)
+    rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence, levels=body.levels)
     metrics.detections.labels(loaded.record.name).inc(sum(len(r) for r in rows))
     prof = loaded.profile
     return json_response({
@@ -44,9 +44,13 @@ def calibrate_nuscenes(
     settings: SettingsDep, metrics: MetricsDep,
     profile: Annotated[str | None, Query(description="`name` or `name@version`")] = None,
     ellipse_confidence: Annotated[float, Query(gt=0.0, lt=1.0)] = 0.95,
+    levels: Annotated[list[float] | None, Query(
+        description=f"{LEVELS_TEXT} Repeat it: `?levels=0.5&levels=0.9`; default "
+                    f"{list(DEFAULT_LEVELS)}.")] = None,
 ) -> Response:
-    """Calibrate a nuScenes results document; scores replaced, raw score and covariance added."""
+    """Calibrate a nuScenes results document; scores replaced, raw score, Σ', ellipses added."""
     loaded = cache.resolve(profile, settings.default_profile, loc=("query", "profile"))
-    doc, n = calibrate_results(loaded, body, ellipse_confidence)
+    doc, n = calibrate_results(loaded, body, ellipse_confidence,
+                               DEFAULT_LEVELS if levels is None else levels)
     metrics.detections.labels(loaded.record.name).inc(n)
     return json_response(doc)

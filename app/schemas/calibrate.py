@@ -2,17 +2,25 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Self
+from typing import Annotated, Literal, Self
 
 from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from app.schemas.common import Finite, Probability, ProfileRef
-from calibrators.vocab import BOX_FIELDS, BOX_INDEX
+from calibrators.levels import MAX_LEVELS
+from calibrators.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
 
 Row = list[Finite]
 #: A box row has every field, or every field up to the velocity.
 _BOX_WIDTHS = (len(BOX_FIELDS), BOX_INDEX["vx"])
 _BOX_TEXT = " ".join(BOX_FIELDS)
+
+#: The levels served when a request names none.
+DEFAULT_LEVELS = (0.95,)
+#: Docs of the `levels` field; the rule itself is `calibrators.levels.check_levels`.
+LEVELS_TEXT = (f"Coverage levels of the served `ellipses`: at most {MAX_LEVELS} distinct "
+               f"numbers in (0, 1); a conformal profile serves a level only up to n/(n + 1) "
+               f"of each group's n calibration points.")
 
 _EXAMPLE_DETECTION = {
     "logits": [2.1, -3.0, -4.2, -5.0, -4.1, -3.3, -4.4, -4.9, -5.1, -3.8],
@@ -113,13 +121,14 @@ class CalibrateRequest(BaseModel):
     """Raw detections of one or more frames to calibrate with a stored profile."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
-        "profile": "lidar", "ellipse_confidence": 0.95,
+        "profile": "lidar", "ellipse_confidence": 0.95, "levels": [0.5, 0.9, 0.95, 0.99],
         "frames": [{"frame_id": "f0", "detections": [_EXAMPLE_DETECTION]}]}]})
 
     profile: str | None = Field(
         None, description="`name` (its active version) or `name@version`; default: the "
                           "configured default name.", examples=["lidar"])
     ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
+    levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT)
     frames: list[FrameIn] = Field(min_length=1)
 
 
@@ -130,6 +139,20 @@ class EllipseOut(BaseModel):
     semi_minor: float
     angle: float = Field(description="Major-axis angle from +x, radians, in (-pi/2, pi/2].")
     confidence: float
+
+
+class LevelEllipseOut(BaseModel):
+    """The served region of one level: an ellipse of the x, y block of the calibrated
+    covariance with the Mahalanobis radius of its method."""
+
+    semi_major: float
+    semi_minor: float
+    angle: float = Field(description="Major-axis angle from +x, radians, in (-pi/2, pi/2].")
+    method: Literal[REGION_METHODS] = Field(  # type: ignore[valid-type]
+        description="`conformal` (the group's split-conformal radius) or `gaussian` "
+                    "(`sqrt(χ²₂(q))`).")
+    group: str | None = Field(description="The conformal group (class × distance bin, e.g. "
+                                          "`car 15-30 m`) that served it; null for gaussian.")
 
 
 class DetectionOut(BaseModel):
@@ -145,6 +168,9 @@ class DetectionOut(BaseModel):
     box: list[float]
     covariance: list[list[float]] = Field(description="Calibrated `[D, D]` over `cov_dims`.")
     ellipse: EllipseOut | None = Field(description="None when cov_dims lack x or y.")
+    ellipses: dict[str, LevelEllipseOut] | None = Field(
+        description="The region at each requested level, keyed by the level as "
+                    "`str(float(level))` (`\"0.95\"`); null when cov_dims lack x or y.")
     distance: float = Field(description="BEV distance from the ego, m.")
 
 
@@ -179,6 +205,7 @@ class DetectRequest(BaseModel):
     profile: str | None = None
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Keep raw scores >= this.")
     ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
+    levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT)
 
     @field_validator("points")
     @classmethod

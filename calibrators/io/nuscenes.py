@@ -4,7 +4,8 @@ Both files are `{"meta": {...}, "results": {sample_token: [box, ...]}}`. A box h
 fields: sample_token, translation [3], size [3] (w, l, h), rotation [4] (quaternion w, x, y, z),
 velocity [2], ego_translation [3] (the box centre minus the ego position, as the devkit's
 `add_center_dist` sets it), num_pts, detection_name, detection_score, attribute_name; plus our
-optional extensions `detection_logits` [C'], `covariance` [D][D] and `detection_score_raw`.
+optional extensions `detection_logits` [C'], `covariance` [D][D], `detection_score_raw` and
+`ellipses` (written by `calibrate_results_document`, see `ellipses_json`).
 docs/formats.md has the full description and the conventions.
 """
 
@@ -13,7 +14,8 @@ from __future__ import annotations
 import copy
 import json
 import os
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from scipy.special import logit
@@ -21,12 +23,16 @@ from scipy.special import logit
 from calibrators.checks import (
     as_float_array,
     check_choice,
+    check_finite,
     check_length,
     check_probabilities,
 )
 from calibrators.dump import Dump
 from calibrators.io.atomic import atomic_write
 from calibrators.vocab import BOX_FIELDS, quaternion_yaw
+
+if TYPE_CHECKING:
+    from calibrators.serving import CalibratedDetections
 
 NUSCENES_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
                     "motorcycle", "bicycle", "traffic_cone", "barrier")
@@ -126,14 +132,18 @@ def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
 
 def calibrate_results_document(document: dict, scores: np.ndarray,
                                covariances: np.ndarray | None = None,
-                               cov_dims: Sequence[str] = ("x", "y")) -> dict:
+                               cov_dims: Sequence[str] = ("x", "y"), *,
+                               ellipses: Sequence[Mapping[str, Any] | None] | None = None
+                               ) -> dict:
     """A copy of a results `document` with calibrated scores (and covariances) written in.
 
     Boxes are taken in the order `load_nuscenes` reads them (sample tokens in file order, boxes
     in list order), so `scores [N]` and `covariances [N, D, D]` computed on the loaded dump
     line up. Each box gets `detection_score = scores[i]` and keeps its raw score in
     `detection_score_raw` (an existing `detection_score_raw` is kept: it is the detector's);
-    with `covariances` it gets `covariance` over `cov_dims`, recorded in `meta.cov_dims`.
+    with `covariances` it gets `covariance` over `cov_dims`, recorded in `meta.cov_dims`;
+    with `ellipses` (`[N]`, e.g. `ellipses_json(calibrated)`) it gets `ellipses = ellipses[i]`
+    (an existing `ellipses` key is replaced).
     Every other key of the document, its meta and its boxes (attribute_name, num_pts,
     detection_logits, unknown extensions) is kept as it is. `document` is not modified.
     """
@@ -153,13 +163,46 @@ def calibrate_results_document(document: dict, scores: np.ndarray,
         cov = _check_cov_array(covariances, len(boxes), len(dims))
         meta = out.get("meta") if isinstance(out.get("meta"), dict) else {}
         out["meta"] = {**meta, "cov_dims": list(dims)}
+    if ellipses is not None:
+        ellipses = list(ellipses)
+        if len(ellipses) != len(boxes):
+            raise ValueError(f"ellipses has {len(ellipses)} rows but document (boxes) has "
+                             f"{len(boxes)}")
     for i, box in enumerate(boxes):
         if "detection_score_raw" not in box and "detection_score" in box:
             box["detection_score_raw"] = box["detection_score"]
         box["detection_score"] = float(scores[i])
         if cov is not None:
             box["covariance"] = cov[i].tolist()
+        if ellipses is not None:
+            box["ellipses"] = None if ellipses[i] is None else dict(ellipses[i])
     return out
+
+
+def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, Any]] | None]:
+    """Per detection of `calibrated` (`CalibrationProfile.calibrate(..., levels=...)`), its
+    served regions as JSON: `{str(float(q)): {"semi_major": m, "semi_minor": m, "angle": rad,
+    "method": "conformal" | "gaussian", "group": "car 15-30 m" | None}}` for each level `q`
+    (the group is None for gaussian regions), or None when the profile's cov_dims lack x or y.
+
+    The angle is the major axis's from +x (`calibrators.ellipse`). Raises a FieldError naming
+    the level and the detection (`row`) of a semi-axis that is not finite.
+    """
+    n = len(calibrated)
+    method = calibrated.region_method
+    if method is None:
+        return [None] * n
+    groups = calibrated.region_groups
+    columns = []
+    for level, region in calibrated.regions.items():
+        key = str(float(level))
+        arrays = [np.asarray(a, dtype=np.float64).reshape(n) for a in region]
+        for name, arr in zip(("semi_major", "semi_minor", "angle"), arrays, strict=True):
+            check_finite(f"ellipses[{key!r}].{name}", arr)
+        columns.append((key, *(a.tolist() for a in arrays)))
+    return [{key: {"semi_major": major[i], "semi_minor": minor[i], "angle": angle[i],
+                   "method": method, "group": None if groups is None else groups[i]}
+             for key, major, minor, angle in columns} for i in range(n)]
 
 
 # -- reading ----------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ from calibrators.io import (
     save_nuscenes,
 )
 from calibrators.io.npz import OPTIONAL_KEYS, REQUIRED_KEYS
+from calibrators.io.nuscenes import ellipses_json
 
 CLASSES = ("car", "pedestrian", "traffic_cone")
 
@@ -437,3 +438,49 @@ def test_calibrate_results_document_scores_only_and_other_dims():
 def test_calibrate_results_document_refuses_bad_input(doc, scores, kwargs, message):
     with pytest.raises(ValueError, match=message):
         calibrate_results_document(results_document() if doc is None else doc, scores, **kwargs)
+
+
+def _served(method="conformal", groups=("car 0-15 m", "car 15-30 m", "all classes 30+ m")):
+    """A stand-in for `CalibratedDetections` of 3 detections at levels 0.5 and 0.9."""
+    from calibrators.ellipse import Ellipse
+    from calibrators.serving import CalibratedDetections
+
+    regions = {} if method is None else {
+        q: Ellipse(np.array([1.0, 2.0, 3.0]) * r, np.array([0.5, 1.0, 1.5]) * r,
+                   np.array([0.0, 0.3, -1.2])) for q, r in ((0.5, 1.0), (0.9, 2.0))}
+    return CalibratedDetections(
+        labels=np.zeros(3, dtype=np.int64), scores=np.full(3, 0.5), scores_raw=np.full(3, 0.6),
+        class_scores=None, covariances=np.tile(np.eye(2), (3, 1, 1)), ellipses=None,
+        distances=np.array([5.0, 20.0, 40.0]), regions=regions, region_method=method,
+        region_groups=None if groups is None else list(groups))
+
+
+def test_ellipses_json_keys_levels_as_str_of_float():
+    rows = ellipses_json(_served())
+    assert list(rows[1]) == ["0.5", "0.9"]
+    assert rows[1]["0.9"] == {"semi_major": 4.0, "semi_minor": 2.0, "angle": 0.3,
+                              "method": "conformal", "group": "car 15-30 m"}
+    gauss = ellipses_json(_served("gaussian", None))
+    assert all(r["0.5"]["method"] == "gaussian" and r["0.5"]["group"] is None for r in gauss)
+    assert ellipses_json(_served(None, None)) == [None, None, None]   # cov_dims lack x, y
+
+
+def test_ellipses_json_refuses_non_finite_semi_axes():
+    served = _served()
+    served.regions[0.9].semi_major[2] = np.inf
+    with pytest.raises(ValueError, match=r"ellipses\['0.9'\].semi_major has Inf at index 2"):
+        ellipses_json(served)
+
+
+def test_calibrate_results_document_writes_ellipses():
+    doc = results_document()
+    doc["results"]["s1"][0]["ellipses"] = {"0.3": {"semi_major": 9.0}}   # replaced, not merged
+    rows = ellipses_json(_served())
+    out = calibrate_results_document(doc, np.array([0.1, 0.2, 0.3]), ellipses=rows)
+    boxes = [b for t in ("s1", "s0") for b in out["results"][t]]
+    assert [b["ellipses"] for b in boxes] == rows
+    json.dumps(out, allow_nan=False)
+    assert "ellipses" not in calibrate_results_document(
+        results_document(), np.array([0.1, 0.2, 0.3]))["results"]["s1"][0]
+    with pytest.raises(ValueError, match="ellipses has 2 rows but document"):
+        calibrate_results_document(doc, np.array([0.1, 0.2, 0.3]), ellipses=rows[:2])
