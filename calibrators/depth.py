@@ -23,13 +23,14 @@ from __future__ import annotations
 import warnings
 from collections.abc import Hashable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.optimize import minimize_scalar
 
 from calibrators._spectral import _spectral, _spectral_2x2
 from calibrators.checks import as_float_array, check_covariances, check_length
-from calibrators.exceptions import check_fitted
+from calibrators.exceptions import FieldError, check_fitted
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 _WIDEN = 100.0  # an optimum at the upper bound is searched again once up to 100 x the bound
@@ -67,14 +68,8 @@ class DepthScaler:
         and `classes [N]` (any hashable labels, e.g. ints or strs); returns self."""
         min_samples = _check_min_samples(self.min_samples)
         bounds = _check_bounds(self.bounds)
-        r = as_float_array("residuals", residuals, ndim=2)
-        if r.shape[0] == 0 or r.shape[1] == 0:
-            raise ValueError(f"residuals is empty (shape {r.shape}): need [N, D] with N, D >= 1")
+        r, cov, d, keys, codes, terms = fit_inputs(residuals, covariances, distances, classes)
         n, dim = r.shape
-        cov = _check_cov(covariances, n, dim, full=False)
-        d = _check_distances(distances, n)
-        keys, codes = _class_codes(classes, n)
-        terms = _Terms.build(r, cov, d)
         groups, pooled = _binned(terms, codes, len(keys))
         xtol = float(self.xtol)
 
@@ -98,14 +93,42 @@ class DepthScaler:
     def transform(self, covariances: np.ndarray | None, distances: np.ndarray,
                   classes: np.ndarray) -> np.ndarray:
         """Scaled covariances `[N, D, D]`; a class never seen in fit takes `pooled_k_`."""
-        check_fitted(self, "k_")
-        d = _check_distances(distances, None)
-        n = d.shape[0]
-        cov = _check_cov(covariances, n, self.n_dims_)
-        keys, codes = _class_codes(classes, n)
-        k_rows = np.array([self.k_.get(key, self.pooled_k_) for key in keys], dtype=np.float64)
-        base = np.zeros((n, self.n_dims_, self.n_dims_)) if cov is None else cov
-        return add_depth_term(base, d, k_rows[codes] if n else np.zeros(0))
+        d, cov, k = transform_inputs(self, covariances, distances, classes)
+        base = np.zeros((d.shape[0], self.n_dims_, self.n_dims_)) if cov is None else cov
+        return add_depth_term(base, d, k)
+
+
+def fit_inputs(residuals: np.ndarray, covariances: np.ndarray | None, distances: np.ndarray,
+               classes: np.ndarray) -> tuple[Any, ...]:
+    """Checked `(residuals [N, D], covariances [N, D, D] | None, distances [N], class keys,
+    class codes [N], the NLL terms)` of a depth-type scaler's `fit`."""
+    r = as_float_array("residuals", residuals, ndim=2)
+    if r.shape[0] == 0 or r.shape[1] == 0:
+        raise FieldError("residuals", f"residuals is empty (shape {r.shape}): need [N, D] "
+                                      "with N, D >= 1")
+    n, dim = r.shape
+    cov = _check_cov(covariances, n, dim, full=False)
+    d = _check_distances(distances, n)
+    keys, codes = _class_codes(classes, n)
+    return r, cov, d, keys, codes, _Terms.build(r, cov, d)
+
+
+def per_row(table: dict, pooled: float, classes: np.ndarray) -> np.ndarray:
+    """`[N]` the value of `table` for each row's class in `classes [N]` (pooled if absent)."""
+    keys, codes = _class_codes(classes, len(classes))
+    values = np.array([table.get(key, pooled) for key in keys], dtype=np.float64)
+    return values[codes] if len(classes) else np.zeros(0)
+
+
+def transform_inputs(scaler: Any, covariances: np.ndarray | None, distances: np.ndarray,
+                     classes: np.ndarray) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Checked `(distances [N], covariances [N, D, D] | None, k per row [N])` for the
+    `transform` of a fitted depth-type scaler (`k_`, `pooled_k_`, `n_dims_`)."""
+    check_fitted(scaler, "k_")
+    d = _check_distances(distances, None)
+    cov = _check_cov(covariances, d.shape[0], scaler.n_dims_)
+    _class_codes(classes, d.shape[0])          # checks the length and the labels
+    return d, cov, per_row(scaler.k_, scaler.pooled_k_, np.asarray(classes))
 
 
 def add_depth_term(covariances: np.ndarray, distances: np.ndarray, k: np.ndarray

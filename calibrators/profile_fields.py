@@ -121,31 +121,38 @@ def jsonable(key: str, value: Any) -> dict:
                          ) from None
 
 
+def _method(key: str, value: Any, methods: tuple[str, ...]) -> str:
+    """The `method` of stage `key`, one of `methods`, or a ValueError naming `key.method`."""
+    method = value.get("method") if isinstance(value, dict) else None
+    if method not in methods:
+        raise ValueError(f"{key}.method must be one of {list(methods)}, got {method!r}")
+    return method
+
+
+def _parsed(key: str, build: Any, data: Any) -> Any:
+    """`build(data)`, a stage's fitted object, or a ValueError naming `key`."""
+    try:
+        return build(data)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise ValueError(f"{key} is not valid: {exc}") from None
+
+
 def score_stage(value: Any) -> tuple[str, Any]:
     """`(method, calibrator or None)` of a v2 `score_calibration` (None: temperature)."""
     if value is None:
         return "temperature", None
-    method = value.get("method") if isinstance(value, dict) else None
-    if method not in SCORE_METHODS:
-        raise ValueError(f"score_calibration.method must be one of {list(SCORE_METHODS)}, "
-                         f"got {method!r}")
+    method = _method("score_calibration", value, SCORE_METHODS)
     if method == "temperature":
         return method, None
-    try:
-        return method, score_calibrator_from_dict(value.get("params"))
-    except (ValueError, TypeError, KeyError) as exc:
-        raise ValueError(f"score_calibration.params is not a valid {method} calibrator: "
-                         f"{exc}") from None
+    return method, _parsed("score_calibration.params", score_calibrator_from_dict,
+                           value.get("params"))
 
 
 def covariance_stage(value: Any, classes: tuple[str, ...]) -> tuple[str, dict, float]:
     """`(method, s per class, pooled s)` of a v2 `covariance_scaling` (None: depth)."""
     if value is None:
         return "depth", {}, 1.0
-    method = value.get("method") if isinstance(value, dict) else None
-    if method not in COV_METHODS:
-        raise ValueError(f"covariance_scaling.method must be one of {list(COV_METHODS)}, "
-                         f"got {method!r}")
+    method = _method("covariance_scaling", value, COV_METHODS)
     scale = class_numbers("covariance_scaling.scale", value.get("scale", {}), classes,
                           positive=True)
     pooled = number("covariance_scaling.pooled_scale", value.get("pooled_scale", 1.0),
@@ -157,16 +164,10 @@ def region_stage(value: Any, n_classes: int) -> tuple[str, ConformalRegions | No
     """`(method, conformal regions or None)` of a v2 `regions` (None: gaussian)."""
     if value is None:
         return "gaussian", None
-    method = value.get("method") if isinstance(value, dict) else None
-    if method not in REGION_METHODS:
-        raise ValueError(f"regions.method must be one of {list(REGION_METHODS)}, got "
-                         f"{method!r}")
+    method = _method("regions", value, REGION_METHODS)
     if method == "gaussian":
         return method, None
-    try:
-        regions = ConformalRegions.from_dict(value.get("conformal"))
-    except (ValueError, TypeError, KeyError) as exc:
-        raise ValueError(f"regions.conformal is not valid: {exc}") from None
+    regions = _parsed("regions.conformal", ConformalRegions.from_dict, value.get("conformal"))
     if regions.classes_ != list(range(n_classes)):
         raise ValueError("regions.conformal must serve the profile's class indices")
     return method, regions

@@ -29,13 +29,13 @@ from calibrators.depth import (
     _Binned,
     _binned,
     _check_bounds,
-    _check_cov,
-    _check_distances,
     _check_min_samples,
-    _class_codes,
     _fit_k,
     _Terms,
     add_depth_term,
+    fit_inputs,
+    per_row,
+    transform_inputs,
 )
 from calibrators.exceptions import FieldError, check_fitted
 from calibrators.vocab import to_jsonable
@@ -73,15 +73,8 @@ class ShrinkageDepthScaler:
         min_samples = _check_min_samples(self.min_samples)
         bounds = _check_bounds(self.bounds)
         scale_bounds = _check_scale_bounds(self.scale_bounds)
-        r = as_float_array("residuals", residuals, ndim=2)
-        if r.shape[0] == 0 or r.shape[1] == 0:
-            raise FieldError("residuals", f"residuals is empty (shape {r.shape}): need [N, D] "
-                                          "with N, D >= 1")
+        r, cov, d, keys, codes, terms = fit_inputs(residuals, covariances, distances, classes)
         n, dim = r.shape
-        cov = _check_cov(covariances, n, dim, full=False)
-        d = _check_distances(distances, n)
-        keys, codes = _class_codes(classes, n)
-        terms = _Terms.build(r, cov, d)
         groups, pooled = _binned(terms, codes, len(keys))
         near_q = _near_q(terms, codes, len(keys))
         fit = _PairFit(bounds, (1.0, 1.0) if cov is None else scale_bounds, float(self.xtol))
@@ -108,18 +101,12 @@ class ShrinkageDepthScaler:
     def transform(self, covariances: np.ndarray | None, distances: np.ndarray,
                   classes: np.ndarray) -> np.ndarray:
         """`s_c·Σ + k_c·d·I` `[N, D, D]`; a class never seen in fit takes the pooled pair."""
-        check_fitted(self, "k_")
-        d = _check_distances(distances, None)
-        n = d.shape[0]
-        cov = _check_cov(covariances, n, self.n_dims_)
-        keys, codes = _class_codes(classes, n)
-        s_rows = np.array([self.s_.get(key, self.pooled_s_) for key in keys], dtype=np.float64)
-        k_rows = np.array([self.k_.get(key, self.pooled_k_) for key in keys], dtype=np.float64)
+        d, cov, k = transform_inputs(self, covariances, distances, classes)
         if cov is None:
-            base = np.zeros((n, self.n_dims_, self.n_dims_))
+            base = np.zeros((d.shape[0], self.n_dims_, self.n_dims_))
         else:
-            base = cov * (s_rows[codes] if n else np.zeros(0))[:, None, None]
-        return add_depth_term(base, d, k_rows[codes] if n else np.zeros(0))
+            base = cov * per_row(self.s_, self.pooled_s_, np.asarray(classes))[:, None, None]
+        return add_depth_term(base, d, k)
 
     def to_dict(self) -> dict[str, Any]:
         """Strict-JSON-able plain dict; `from_dict(to_dict())` transforms identically."""

@@ -14,14 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.checks import (
-    as_float_array,
-    as_int_array,
-    check_covariances,
-    check_index,
-    check_length,
-    check_probabilities,
-)
+from calibrators import checks
 from calibrators.depth import _check_distances, _class_codes
 from calibrators.exceptions import FieldError
 from calibrators.levels import (
@@ -78,7 +71,7 @@ def coverage_table(mahalanobis: np.ndarray, radii: np.ndarray, levels: Sequence[
     q, m, r = _inputs(mahalanobis, radii, levels)
     edges = check_distance_edges(distance_edges)
     d = _check_distances(distances, None)
-    check_length("distances", d, m.shape[0], "mahalanobis")
+    checks.check_length("distances", d, m.shape[0], "mahalanobis")
     keys, codes = _class_codes(classes, m.shape[0])
     covered = _covered(m, r)
     cell = codes * (edges.size - 1) + distance_bins(d, edges)
@@ -97,9 +90,9 @@ def coverage_table(mahalanobis: np.ndarray, radii: np.ndarray, levels: Sequence[
 def mean_ellipse_area(covariances: np.ndarray, radii: np.ndarray) -> np.ndarray:
     """Mean area `[Q]` of the ellipses `π r² sqrt(det Σ)` of `covariances [M, 2, 2]` (the
     served `x, y` block) at `radii [M, Q]`; inf if any radius of that level is."""
-    cov = as_float_array("covariances", covariances, ndim=3)
+    cov = checks.as_float_array("covariances", covariances, ndim=3)
     check_nonempty("covariances", cov)
-    check_covariances("covariances", cov, dim=2)
+    checks.check_covariances("covariances", cov, dim=2)
     r = _radii(radii, cov.shape[0], "covariances")
     det = np.maximum(cov[:, 0, 0] * cov[:, 1, 1] - cov[:, 0, 1] * cov[:, 1, 0], 0.0)
     with np.errstate(invalid="ignore"):
@@ -115,13 +108,13 @@ def classwise_ece(scores: np.ndarray, tp: np.ndarray, labels: np.ndarray,
     labels: [N] index into `classes` (names, in logit column order). A class with no
     detection maps to None.
     """
-    s = as_float_array("scores", scores, ndim=1)
-    check_probabilities("scores", s)
+    s = checks.as_float_array("scores", scores, ndim=1)
+    checks.check_probabilities("scores", s)
     hit = as_binary("tp", tp, s.shape[0], "scores")
-    y = as_int_array("labels", labels)
-    check_length("labels", y, s.shape[0], "scores")
+    y = checks.as_int_array("labels", labels)
+    checks.check_length("labels", y, s.shape[0], "scores")
     names = list(classes)
-    check_index("labels", y, len(names), "classes")
+    checks.check_index("labels", y, len(names), "classes")
     out: dict[Hashable, float | None] = {}
     for k, name in enumerate(names):
         rows = y == k
@@ -133,7 +126,7 @@ def classwise_ece(scores: np.ndarray, tp: np.ndarray, labels: np.ndarray,
 def _inputs(mahalanobis: object, radii: object, levels: object
             ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     q = check_levels(levels)
-    m = as_float_array("mahalanobis", mahalanobis, ndim=1)
+    m = checks.as_float_array("mahalanobis", mahalanobis, ndim=1)
     check_nonempty("mahalanobis", m)
     if (m < 0).any():
         i = int(np.argmax(m < 0))
@@ -153,7 +146,7 @@ def _radii(radii: object, n: int, other: str) -> np.ndarray:
         raise FieldError("radii", f"radii must be numeric: {exc}") from None
     if r.ndim != 2:
         raise FieldError("radii", f"radii must have 2 dimensions [M, Q], got shape {r.shape}")
-    check_length("radii", r, n, other)
+    checks.check_length("radii", r, n, other)
     bad = np.isnan(r) | (r < 0)
     if bad.any():
         i, j = (int(v) for v in np.argwhere(bad)[0])

@@ -171,9 +171,17 @@ class ClasswiseCalibrator:
         check_length("distances", d, x.shape[0], "z")
         return x, y, d
 
+    #: Parametric methods: the length of a class's parameter vector, whose first entry (a
+    #: temperature or a slope) must be > 0, and how a message names it; None: any length.
+    _param_size: ClassVar[int | None] = None
+    _param_text: ClassVar[str] = ""
+
     def _param_array(self, name: str, value: object) -> np.ndarray:
         arr = as_float_array(name, value, ndim=self._param_ndim)
         check_nonempty(name, arr)
+        if self._param_size is not None and (arr.shape != (self._param_size,)
+                                             or not arr[0] > 0):
+            raise ValueError(f"{name} must be {self._param_text}, got {arr.tolist()}")
         return arr
 
 

@@ -30,6 +30,8 @@ class ClassTemperatureScaler(ClasswiseCalibrator):
     """
 
     method = "class_temperature"
+    _param_size = 1
+    _param_text = "[T] with T > 0"
     _hyper = ("min_samples", "min_each", "bounds", "xtol")
 
     def __init__(self, min_samples: int = 50, min_each: int = 5,
@@ -48,12 +50,6 @@ class ClassTemperatureScaler(ClasswiseCalibrator):
 
     def _apply(self, params: np.ndarray, z: np.ndarray, d: np.ndarray | None) -> np.ndarray:
         return expit(z / params[0])
-
-    def _param_array(self, name: str, value: object) -> np.ndarray:
-        arr = super()._param_array(name, value)
-        if arr.shape != (1,) or not arr[0] > 0:
-            raise ValueError(f"{name} must be [T] with T > 0, got {arr.tolist()}")
-        return arr
 
     def _derive(self) -> None:
         self.temperature_ = np.array([p[0] for p in self.params_])

@@ -34,6 +34,8 @@ class PlattScaler(ClasswiseCalibrator):
     """
 
     method = "platt"
+    _param_size = 3
+    _param_text = "[a, b, g] with a > 0"
     _hyper = ("range_term", "min_samples", "min_each", "l2", "min_slope")
 
     def __init__(self, range_term: bool = False, min_samples: int = 50, min_each: int = 5,
@@ -80,12 +82,6 @@ class PlattScaler(ClasswiseCalibrator):
         if self.range_term:
             eta = eta + params[2] * d
         return expit(eta)
-
-    def _param_array(self, name: str, value: object) -> np.ndarray:
-        arr = super()._param_array(name, value)
-        if arr.shape != (3,) or not arr[0] > 0:
-            raise ValueError(f"{name} must be [a, b, g] with a > 0, got {arr.tolist()}")
-        return arr
 
     def _derive(self) -> None:
         self.coef_ = np.stack(self.params_)

@@ -168,18 +168,21 @@ def _honest_overview(reports: Sequence[SensorReport]) -> str:
         big = [c for c in h.classes if c.n_tp >= 500]
         worst = (max((c.ece_ts or 0.0) for c in big), max((c.ece_auto or 0.0) for c in big)
                  ) if big else (None, None)
-        shrink = _find(h.rows, "Shrinkage")
-        ds = _find(r.rows, "Depth Scaling")
+        shrink, ds = _find(h.rows, "Shrinkage"), _find(r.rows, "Depth Scaling")
         thesis, default = h.regions[0], h.regions[-1]
-        lines.append(
-            f"| {r.sensor} | {' + '.join(h.chosen)} | {h.ts_row.ece:.4f} → "
-            f"{h.default_row.ece:.4f} | {tables.number(worst[0])} → {tables.number(worst[1])} "
-            f"| {' / '.join(f'{c:.3f}' for c in thesis.coverage)} → "
-            f"{' / '.join(f'{c:.3f}' for c in default.coverage)} | "
-            f"{tables.number(None if ds is None else ds.mean_md)} → "
-            f"{tables.number(None if shrink is None else shrink.mean_md)} | "
-            f"{_find(r.rows, 'Vanilla').mean_ap:.3f} → {h.default_row.mean_ap:.3f} |")
+        cells = [r.sensor, " + ".join(h.chosen),
+                 f"{h.ts_row.ece:.4f} → {h.default_row.ece:.4f}",
+                 f"{tables.number(worst[0])} → {tables.number(worst[1])}",
+                 f"{_levels(thesis.coverage)} → {_levels(default.coverage)}",
+                 f"{tables.number(None if ds is None else ds.mean_md)} → "
+                 f"{tables.number(None if shrink is None else shrink.mean_md)}",
+                 f"{_find(r.rows, 'Vanilla').mean_ap:.3f} → {h.default_row.mean_ap:.3f}"]
+        lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
+
+
+def _levels(values: Sequence[float]) -> str:
+    return " / ".join(f"{v:.3f}" for v in values)
 
 
 def _overview(reports: Sequence[SensorReport]) -> str:
