@@ -47,3 +47,16 @@ def test_bad_option_is_a_422_naming_the_field(empty_client, npz_bytes):
                               files={"dump": ("val.npz", npz_bytes)})
         assert r.status_code == 422, (data, r.text)
         assert r.json()["detail"][0]["loc"] == ["body", field], r.json()
+
+
+def test_api_docs_list_every_fit_option_with_its_default():
+    from pathlib import Path
+
+    text = (Path(__file__).resolve().parents[2] / "docs" / "api.md").read_text()
+    section = text[text.index("## POST /v1/fit"):text.index("## GET /v1/jobs")]
+    for spec in FitOptions.describe():
+        row = next((line for line in section.splitlines()
+                    if line.startswith(f"| `{spec.name}` |")), None)
+        assert row is not None, spec.name
+        default = "all" if spec.default is None else str(spec.default).lower()
+        assert default in row.lower(), (spec.name, row)
