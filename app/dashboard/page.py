@@ -92,8 +92,10 @@ def per_class_table(summary: Summary) -> str:
 
 
 #: A served level whose coverage misses it by more than this is marked (the service's own
-#: tolerance for a class × range cell; small cells are noisy, their counts are shown).
+#: tolerance for a class × range cell), in cells with at least `COVERAGE_MIN_TPS` true
+#: positives: smaller cells are too noisy to judge (their counts are shown).
 COVERAGE_TOLERANCE = 0.04
+COVERAGE_MIN_TPS = 100
 
 
 def region_table(summary: Summary, part: str) -> str:
@@ -106,10 +108,11 @@ def region_table(summary: Summary, part: str) -> str:
     levels = regions["levels"]
     cov = regions["coverage"]
 
-    def cells(values: list[float | None]) -> str:
+    def cells(values: list[float | None], count: int) -> str:
         out = []
         for q, v in zip(levels, values, strict=True):
-            off = v is not None and abs(v - q) > COVERAGE_TOLERANCE
+            off = (v is not None and count >= COVERAGE_MIN_TPS
+                   and abs(v - q) > COVERAGE_TOLERANCE)
             out.append(f"<td class='{'worse' if off else ''}'>{_num(v, 3)}</td>")
         return "".join(out)
 
@@ -118,15 +121,18 @@ def region_table(summary: Summary, part: str) -> str:
         return f"{lo:g}+ m" if hi is None else f"{lo:g}–{hi:g} m"
 
     head = "".join(f"<th>{q:.0%}</th>" for q in levels)
-    rows = [f"<tr><td><b>all</b></td><td></td><td>{cov['count']}</td>{cells(cov['overall'])}"
-            "</tr>"]
+    rows = [f"<tr><td><b>all</b></td><td></td><td>{cov['count']}</td>"
+            f"{cells(cov['overall'], cov['count'])}</tr>"]
     rows += [f"<tr><td>{_e(r['class'])}</td><td>{span(r['distance_range'])}</td>"
-             f"<td>{r['count']}</td>{cells(r['coverage'])}</tr>" for r in cov["rows"]]
+             f"<td>{r['count']}</td>{cells(r['coverage'], r['count'])}</tr>"
+             for r in cov["rows"]]
     area = " / ".join(_num(a, 3) for a in regions["mean_area"])
     gauss = " / ".join(_num(g, 3) for g in regions["gaussian_coverage"])
     return (f"<p class='note'>{_e(part)}: share of true centres inside the served "
             f"{_e(regions['method'])} ellipse at each level; mean area {area} m²; Gaussian χ² "
-            f"radii on the same Σ' would cover {gauss}.</p><table><tr><th>class</th>"
+            f"radii on the same Σ' would cover {gauss}. Cells with ≥ {COVERAGE_MIN_TPS} TPs "
+            f"more than {COVERAGE_TOLERANCE:.0%} off their level are red.</p>"
+            f"<table><tr><th>class</th>"
             f"<th>range</th><th>TPs</th>{head}</tr>" + "".join(rows) + "</table>")
 
 
@@ -240,7 +246,9 @@ def render_page(*, version: str, status: dict[str, str], uptime_s: float,
         p = loaded.profile
         ks = ", ".join(f"{_e(c)} {p.depth_k.get(c, p.pooled_k):.4g}" for c in p.classes)
         profile_html = (
-            f"<p><b>{_e(loaded.record.ref)}</b> · {_e(p.score_mode)} · T = {p.temperature:.4g}"
+            f"<p><b>{_e(loaded.record.ref)}</b> · {_e(p.score_mode)} · scores "
+            f"{_e(p.score_method)} · covariance {_e(p.cov_method)} · regions "
+            f"{_e(p.region_method)} · T = {p.temperature:.4g}"
             f" · cov_source {_e(p.cov_source)} over {_e(', '.join(p.cov_dims))} · pooled k = "
             f"{p.pooled_k:.4g} · created {_e(p.provenance.get('created_at', '?'))} · dump "
             f"<code>{_e(str(p.provenance.get('dump_sha256', ''))[:12])}</code></p>"
