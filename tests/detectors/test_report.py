@@ -71,6 +71,14 @@ def test_report_writes_tables_and_figures(report_run: tuple[Path, Path]) -> None
     assert "### Class-wise, vanilla" in text and "### Class-wise, Depth Scaling" in text
     assert "AS vs IoU" in text and "attention spread + cell²/12 + DS" in text
     assert (out / "lidar.md").read_text() in text
+    assert "## Honest uncertainty: detcal's default profile" in text
+    assert "### Beyond the thesis: per-class scores, s·Σ + k·d·I, conformal ellipses" in text
+    for row in ("| TS per class |", "| Platt per class |", "| Platt per class + range |",
+                "| Isotonic per class |", "| Histogram binning per class |",
+                "| Shrinkage (TS + s·Σ + k·d·I) |", "| detcal default (",
+                "| Depth Scaling, Gaussian χ²₂ radii (thesis) | gaussian |",
+                "| detcal default | "):
+        assert row in text, row
     for name in FIGURES:
         for suffix in (".png", ".svg"):
             path = out / "plots" / f"lidar_{name}{suffix}"
