@@ -150,6 +150,11 @@ class ConformalRegions:
             raise FieldError("level", f"level must be one number in (0, 1), got {q.size} of them")
         return self.radii(q, classes, distances)[:, 0]
 
+    def group_index(self, classes: np.ndarray, distances: np.ndarray) -> np.ndarray:
+        """`[N]` index into `groups_` of the group serving each detection."""
+        check_fitted(self, "serving_")
+        return self._group_of(classes, distances)
+
     def groups(self, classes: np.ndarray, distances: np.ndarray) -> list[dict[str, Any]]:
         """The group serving each detection `[N]` as `{"class", "bins", "n", "reason"}`."""
         check_fitted(self, "serving_")

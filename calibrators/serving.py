@@ -41,6 +41,7 @@ from calibrators.modulation import modulate_logits
 from calibrators.scores import class_probabilities, predict
 
 if TYPE_CHECKING:
+    from calibrators.conformal import ConformalGroup
     from calibrators.profile import CalibrationProfile
 
 __all__ = ["CalibratedDetections", "calibrate_detections"]
@@ -258,26 +259,26 @@ def _regions(profile: CalibrationProfile, cov: np.ndarray, distances: np.ndarray
         return ({float(q): ellipse(block, q) for q in levels},
                 {float(q): np.full(n, gaussian_radius(q)) for q in levels}, method, None)
     radii = conformal.radii(levels, labels, distances)
-    groups = conformal.groups(labels, distances)
+    index = conformal.group_index(labels, distances)
+    names = {int(g): _group_name(profile, conformal.groups_[g]) for g in np.unique(index)}
     bad = ~np.isfinite(radii)
     if bad.any():
         i, j = (int(v) for v in np.argwhere(bad)[0])
-        g = groups[i]
+        n = conformal.groups_[index[i]].n
         raise FieldError("levels", f"level {levels[j]} needs more calibration points than "
                                    f"the conformal group serving detection {i} has "
-                                   f"({_group_name(profile, g)}: {g['n']}); the largest level "
-                                   f"it serves is {g['n'] / (g['n'] + 1):.4g}", row=i)
+                                   f"({names[int(index[i])]}: {n}); the largest level it "
+                                   f"serves is {n / (n + 1):.4g}", row=i)
     return ({float(q): radius_ellipse(block, radii[:, j]) for j, q in enumerate(levels)},
             {float(q): radii[:, j] for j, q in enumerate(levels)}, method,
-            [_group_name(profile, g) for g in groups])
+            [names[g] for g in index.tolist()])
 
 
-def _group_name(profile: CalibrationProfile, group: dict[str, Any]) -> str:
-    """`car 15-30 m`, `all classes 30+ m`, ... from `ConformalRegions.groups` rows."""
-    label = group["class"]
-    who = "all classes" if label is None else profile.classes[int(label)]
+def _group_name(profile: CalibrationProfile, group: ConformalGroup) -> str:
+    """`car 15-30 m`, `pooled classes 30+ m`, ... of a conformal group."""
+    who = "pooled classes" if group.label is None else profile.classes[int(group.label)]
     edges = profile._regions[1].edges_
-    lo, hi = edges[min(group["bins"])], edges[max(group["bins"]) + 1]
+    lo, hi = edges[min(group.bins)], edges[max(group.bins) + 1]
     where = f"{lo:g}+ m" if not np.isfinite(hi) else f"{lo:g}-{hi:g} m"
     return f"{who} {where}"
 

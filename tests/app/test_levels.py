@@ -30,7 +30,7 @@ from calibrators.profile import CalibrationProfile
 CAL, NUS, DET = "/v1/calibrate", "/v1/calibrate/nuscenes", "/v1/detect"
 JSON = {"content-type": "application/json"}
 LEVEL_KEYS = {"semi_major", "semi_minor", "angle", "method", "group"}
-GROUP = re.compile(r"^(all classes|[a-z_]+) \d+(-\d+|\+) m$")
+GROUP = re.compile(r"^(pooled classes|[a-z_]+) \d+(-\d+|\+) m$")
 DETCAL = Path(sys.executable).parent / "detcal"
 N = 40   # detections of the dump sent per request
 
@@ -231,7 +231,7 @@ def test_a_level_beyond_a_conformal_group_is_a_422_naming_level_and_group(
     assert item["loc"] == ["body", "levels"]
     msg = item["msg"]
     assert "profile conformal@1" in msg and "level 0.999" in msg, msg
-    assert re.search(r"\((all classes|[a-z_]+) \d+(-\d+|\+) m: \d+\)", msg), msg
+    assert re.search(r"\((pooled classes|[a-z_]+) \d+(-\d+|\+) m: \d+\)", msg), msg
     assert "frames/0/detections/" in msg
     r = client.post(CAL, json={"profile": "conformal", "ellipse_confidence": 0.999,
                                "frames": _frames(dump_given, detection)})

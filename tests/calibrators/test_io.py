@@ -440,7 +440,7 @@ def test_calibrate_results_document_refuses_bad_input(doc, scores, kwargs, messa
         calibrate_results_document(results_document() if doc is None else doc, scores, **kwargs)
 
 
-def _served(method="conformal", groups=("car 0-15 m", "car 15-30 m", "all classes 30+ m")):
+def _served(method="conformal", groups=("car 0-15 m", "car 15-30 m", "pooled classes 30+ m")):
     """A stand-in for `CalibratedDetections` of 3 detections at levels 0.5 and 0.9."""
     from calibrators.ellipse import Ellipse
     from calibrators.serving import CalibratedDetections
