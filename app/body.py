@@ -1,6 +1,9 @@
 """JSON request bodies parsed straight from bytes by pydantic (one pass in Rust, no
 intermediate dict) and JSON responses serialised by pydantic-core: the hot path of
-/v1/calibrate. Errors keep FastAPI's 422 shape (`loc` starting with "body")."""
+/v1/calibrate. Errors keep FastAPI's 422 shape (`loc` starting with "body").
+
+Bodies are validated in strict mode: a number given as a string or a boolean, or an integer
+given as a float (`"1.5"`, `false`, `1.0`), is refused with the field named."""
 
 from __future__ import annotations
 
@@ -21,14 +24,14 @@ _BODY_MODELS: list[type[BaseModel]] = []
 
 
 def json_body(model: type[M]) -> Callable[[Request], Awaitable[M]]:
-    """A dependency that validates the raw JSON body as `model` (415 unless JSON)."""
+    """A dependency that validates the raw JSON body as `model`, strictly (415 unless JSON)."""
     _BODY_MODELS.append(model)
 
     async def parse(request: Request) -> M:
         require_json(request)
         raw = await request.body()
         try:
-            return model.model_validate_json(raw)
+            return model.model_validate_json(raw, strict=True)
         except ValidationError as exc:
             errors = exc.errors(include_url=False, include_input=False, include_context=False)
             raise RequestValidationError(

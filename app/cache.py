@@ -6,15 +6,13 @@ activation by another worker process or a finished fit is seen by the next reque
 
 from __future__ import annotations
 
-import re
 import threading
 from dataclasses import dataclass
 
 from app.errors import RequestError
+from app.schemas.common import parse_profile_ref
 from app.store import NotFoundError, ProfileRecord, Store
 from calibrators.profile import CalibrationProfile
-
-_REF = re.compile(r"^(?P<name>[A-Za-z0-9_.\-]+)(@(?P<version>\d+))?$")
 
 
 @dataclass(frozen=True)
@@ -52,15 +50,14 @@ class ProfileCache:
 
     def resolve(self, ref: str | None, default: str, loc: tuple[str, ...] = ("body", "profile")
                 ) -> LoadedProfile:
-        """The profile for `name` (active version) or `name@version`; 404 if unknown."""
-        text = default if ref is None else ref
-        m = _REF.match(text)
-        if m is None:
-            raise RequestError(list(loc), f"profile must be 'name' or 'name@version', got "
-                                          f"{text!r}")
-        name = m["name"]
-        if m["version"] is not None:
-            return self._version(name, int(m["version"]))
+        """The profile for `name` (active version) or `name@version`; 404 if unknown, 422
+        naming `loc` if `ref` is not a name or its version not a version number."""
+        try:
+            name, number = parse_profile_ref(default if ref is None else ref)
+        except ValueError as exc:
+            raise RequestError(list(loc), str(exc)) from None
+        if number is not None:
+            return self._version(name, number)
         version = self.store.active_version(name)
         if version is None:
             raise NotFoundError(f"profile {name!r} does not exist")

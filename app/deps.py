@@ -1,4 +1,6 @@
-"""`Annotated` dependency aliases: settings, store, profile cache, job runner, metrics, admin."""
+"""`Annotated` dependency aliases (settings, store, profile cache, job runner, metrics, admin),
+the admin-token rule, the middleware that applies it before a body is read, and the request
+checks every route shares (JSON content type, no empty form fields)."""
 
 from __future__ import annotations
 
@@ -6,9 +8,16 @@ import hmac
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
+from fastapi.dependencies.models import Dependant
+from fastapi.params import Form
+from fastapi.routing import APIRoute
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
+from fastapi.security.utils import get_authorization_scheme_param
+from starlette.datastructures import Headers
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from app.cache import ProfileCache
+from app.errors import RequestError
 from app.jobs import JobRunner
 from app.prometheus import ServiceMetrics
 from app.settings import Settings
@@ -44,20 +53,75 @@ RunnerDep = Annotated[JobRunner, Depends(_runner)]
 MetricsDep = Annotated[ServiceMetrics, Depends(_metrics)]
 
 
-def require_admin(settings: SettingsDep, credentials: Annotated[
-        HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
-    """Admit only a request bearing the configured admin token (constant-time comparison)."""
+def admin_refusal(settings: Settings, authorization: str | None) -> HTTPException | None:
+    """Why a request with this `Authorization` header is not admitted as admin (401 without
+    a bearer token, 403 with a wrong one), or None (constant-time comparison)."""
     if settings.admin_token is None:
-        raise HTTPException(status.HTTP_403_FORBIDDEN, "admin token not configured")
-    if credentials is None or credentials.scheme.lower() != "bearer":
-        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "admin bearer token required",
-                            headers={"WWW-Authenticate": "Bearer"})
+        return HTTPException(status.HTTP_403_FORBIDDEN, "admin token not configured")
+    scheme, token = get_authorization_scheme_param(authorization)
+    if scheme.lower() != "bearer" or not token:
+        return HTTPException(status.HTTP_401_UNAUTHORIZED, "admin bearer token required",
+                             headers={"WWW-Authenticate": "Bearer"})
     expected = settings.admin_token.get_secret_value().encode()
-    if not hmac.compare_digest(credentials.credentials.encode(), expected):
-        raise HTTPException(status.HTTP_403_FORBIDDEN, "wrong admin token")
+    if not hmac.compare_digest(token.encode(), expected):
+        return HTTPException(status.HTTP_403_FORBIDDEN, "wrong admin token")
+    return None
+
+
+def require_admin(settings: SettingsDep, request: Request, _: Annotated[
+        HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> None:
+    """Admit only a request bearing the configured admin token."""
+    refusal = admin_refusal(settings, request.headers.get("authorization"))
+    if refusal is not None:
+        raise refusal
 
 
 AdminDep = Annotated[None, Depends(require_admin)]
+
+
+def _calls(dependant: Dependant) -> set[object]:
+    calls = {dependant.call}
+    for sub in dependant.dependencies:
+        calls |= _calls(sub)
+    return calls
+
+
+class AdminBeforeBodyMiddleware:
+    """Check the admin token of a route that depends on `require_admin` before a single byte
+    of its body is handed to the app: the check runs when the app first asks for the body.
+
+    FastAPI reads a form body (spooling uploads to disk) before it runs the route's
+    dependencies, so without this an unauthenticated upload would be received in full before
+    its 401. Which routes need the token is read from their dependencies; the
+    refusal is an HTTPException raised from `receive`, answered by the framework.
+    """
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    @staticmethod
+    def needs_admin(route: object) -> bool:
+        """Whether `route` depends on `require_admin` (directly or through other dependencies)."""
+        return isinstance(route, APIRoute) and require_admin in _calls(route.dependant)
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        checked = False
+
+        async def checked_receive() -> Message:
+            nonlocal checked
+            if not checked:
+                checked = True
+                if self.needs_admin(scope.get("route")):   # set once the router matched
+                    refusal = admin_refusal(scope["app"].state.settings,
+                                            Headers(scope=scope).get("authorization"))
+                    if refusal is not None:
+                        raise refusal
+            return await receive()
+
+        await self.app(scope, checked_receive, send)
 
 
 def require_json(request: Request) -> None:
@@ -67,3 +131,18 @@ def require_json(request: Request) -> None:
     if media != "application/json" and not media.endswith("+json"):
         raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
                             f"Content-Type must be application/json, got {ctype or 'none'!r}")
+
+
+async def refuse_empty_form_fields(request: Request) -> None:
+    """An empty form field (`name=`) is a 422 naming it: FastAPI would take it for an absent
+    field and silently use the default. Leave a field out to get its default. (Applies to
+    routes with form fields; FastAPI has parsed their form already, so this reads no body.)"""
+    route = request.scope.get("route")
+    if not isinstance(route, APIRoute) or not any(
+            isinstance(p.field_info, Form) for p in route.dependant.body_params):
+        return
+    form = await request.form()
+    for key, value in form.multi_items():
+        if isinstance(value, str) and value == "":
+            raise RequestError(["body", key], f"{key} is empty; leave the field out to get "
+                                              f"its default")

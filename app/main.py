@@ -7,12 +7,13 @@ import logging
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
-from fastapi import FastAPI
+from fastapi import Depends, FastAPI
 
 from app.body import install_openapi
 from app.bundled_detectors import DetectorService
 from app.cache import ProfileCache
 from app.dashboard.page import DashboardRenderer
+from app.deps import AdminBeforeBodyMiddleware, refuse_empty_form_fields
 from app.errors import install_handlers
 from app.jobs import JobRunner
 from app.limits import BodySizeLimitMiddleware
@@ -56,7 +57,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             store.close()
 
     app = FastAPI(title="detcal", version=detcal_version(), description=DESCRIPTION,
-                  lifespan=lifespan)
+                  lifespan=lifespan, dependencies=[Depends(refuse_empty_form_fields)])
     app.state.settings = settings
     app.state.metrics = ServiceMetrics()
     app.state.detectors = DetectorService()
@@ -67,5 +68,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.include_router(module.router)
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes,
                        upload_bytes=settings.max_upload_bytes)
+    app.add_middleware(AdminBeforeBodyMiddleware)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
     return app

@@ -69,8 +69,22 @@ class ServiceMetrics:
         return totals
 
 
+#: Methods counted under their own name; any other is counted as `other`.
+METHODS = frozenset({"GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS"})
+
+
+def request_labels(scope: Scope) -> tuple[str, str]:
+    """The `method` and `route` labels of a request, from bounded sets whatever the client
+    sends: a method outside `METHODS` is `other`, a path no route matched is `unmatched`."""
+    method = scope.get("method", "GET")
+    route: Any = scope.get("route")
+    return (method if method in METHODS else "other",
+            getattr(route, "path", None) or "unmatched")
+
+
 class MetricsMiddleware:
-    """Counts requests and observes latency per route template; adds a `Server-Timing` header."""
+    """Counts requests and observes latency per route template (labels from `request_labels`,
+    so their number is bounded); adds a `Server-Timing` header."""
 
     def __init__(self, app: ASGIApp, metrics: ServiceMetrics) -> None:
         self.app, self.metrics = app, metrics
@@ -94,8 +108,6 @@ class MetricsMiddleware:
         try:
             await self.app(scope, receive, send_wrapper)
         finally:
-            route: Any = scope.get("route")
-            path = getattr(route, "path", None) or "unmatched"
-            method = scope.get("method", "GET")
+            method, path = request_labels(scope)
             self.metrics.requests.labels(method, path, str(status["code"])).inc()
             self.metrics.latency.labels(method, path).observe(time.perf_counter() - start)

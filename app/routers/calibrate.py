@@ -12,7 +12,7 @@ from app.calibration import calibrate_frames
 from app.deps import CacheDep, MetricsDep, SettingsDep
 from app.nuscenes_results import calibrate_results
 from app.schemas.calibrate import DEFAULT_LEVELS, LEVELS_TEXT, CalibrateRequest, CalibrateResponse
-from app.schemas.common import ErrorResponse
+from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.nuscenes import NuScenesResults
 
 router = APIRouter(prefix="/v1", tags=["calibrate"],
@@ -42,7 +42,8 @@ def calibrate(body: Annotated[CalibrateRequest, Depends(json_body(CalibrateReque
 def calibrate_nuscenes(
     body: Annotated[NuScenesResults, Depends(json_body(NuScenesResults))], cache: CacheDep,
     settings: SettingsDep, metrics: MetricsDep,
-    profile: Annotated[str | None, Query(description="`name` or `name@version`")] = None,
+    profile: Annotated[ProfileRefText | None, Query(description="`name` or `name@version`")
+                      ] = None,
     ellipse_confidence: Annotated[float, Query(gt=0.0, lt=1.0)] = 0.95,
     levels: Annotated[list[float] | None, Query(
         description=f"{LEVELS_TEXT} Repeat it: `?levels=0.5&levels=0.9`; default "

@@ -8,14 +8,14 @@ from typing import Annotated
 from fastapi import APIRouter, Path
 
 from app.deps import AdminDep, StoreDep
-from app.schemas.common import ErrorResponse, ProfileName
+from app.schemas.common import ErrorResponse, ProfileName, Version
 from app.schemas.profiles import ProfileDetail, ProfileSummary, ProfileVersions, VersionSummary
 from app.store import ProfileRecord
 
 router = APIRouter(prefix="/v1/profiles", tags=["profiles"])
 NOT_FOUND = {404: {"model": ErrorResponse}}
 
-Version = Annotated[int, Path(ge=1, description="Version number (1, 2, ...).")]
+VersionPath = Annotated[Version, Path()]
 
 
 def _summary(r: ProfileRecord) -> VersionSummary:
@@ -40,7 +40,7 @@ def list_versions(name: ProfileName, store: StoreDep) -> ProfileVersions:
 
 
 @router.get("/{name}/{version}", responses=NOT_FOUND)
-def get_version(name: ProfileName, version: Version, store: StoreDep) -> ProfileDetail:
+def get_version(name: ProfileName, version: VersionPath, store: StoreDep) -> ProfileDetail:
     """One version's parameters and before/after report."""
     r = store.get(name, version)
     return ProfileDetail(**_summary(r).model_dump(), profile=json.loads(r.json))
@@ -49,7 +49,7 @@ def get_version(name: ProfileName, version: Version, store: StoreDep) -> Profile
 @router.post("/{name}/{version}/activate",
              responses={**NOT_FOUND, 401: {"model": ErrorResponse},
                         403: {"model": ErrorResponse}})
-def activate(name: ProfileName, version: Version, store: StoreDep, _: AdminDep
+def activate(name: ProfileName, version: VersionPath, store: StoreDep, _: AdminDep
              ) -> VersionSummary:
     """Make a version the active one of its name, atomically (rolling back = an older one)."""
     return _summary(store.activate(name, version))

@@ -1,16 +1,101 @@
-"""Shared pydantic types: finite floats, references to profile versions, error bodies."""
+"""Shared pydantic types: strict finite numbers, profile names and versions (the one parser of
+`name@version`), JSON values that must be finite, references to profile versions, error bodies.
+
+Numbers are strict: a JSON string or boolean is never read as a number (`"1.5"`, `false`),
+and a JSON float is never read as an integer (`1.0`)."""
 
 from __future__ import annotations
 
+import math
 from datetime import datetime
-from typing import Annotated
+from typing import Annotated, Any
 
-from pydantic import BaseModel, Field
+from pydantic import AfterValidator, BaseModel, Field, Strict, TypeAdapter, ValidationError
 
-Finite = Annotated[float, Field(allow_inf_nan=False)]
-Probability = Annotated[float, Field(ge=0.0, le=1.0, allow_inf_nan=False)]
-ProfileName = Annotated[str, Field(min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_.\-]+$",
+Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
+Probability = Annotated[float, Strict(), Field(ge=0.0, le=1.0, allow_inf_nan=False)]
+
+#: A profile name: letters, digits, `_ . -`, not starting with `.` or `-` (no `.`, `..`).
+PROFILE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$"
+ProfileName = Annotated[str, Field(min_length=1, max_length=64, pattern=PROFILE_NAME_PATTERN,
                                    examples=["lidar"])]
+#: The largest version number a store can hold (a 32-bit integer column on every backend).
+MAX_VERSION = 2**31 - 1
+Version = Annotated[int, Field(ge=1, le=MAX_VERSION, description="Version number (1, 2, ...).")]
+
+_NAME: TypeAdapter[str] = TypeAdapter(ProfileName)
+_VERSION: TypeAdapter[int] = TypeAdapter(Version)
+
+
+def _reason(exc: ValidationError) -> str:
+    return exc.errors(include_url=False)[0]["msg"]
+
+
+def parse_version(text: str) -> int:
+    """A version number from its text (a path segment, the part after `@`); ValueError says
+    why not. The same rule as the `Version` path parameters."""
+    try:
+        return _VERSION.validate_strings(text)
+    except ValidationError as exc:
+        raise ValueError(f"version {text!r}: {_reason(exc)}") from None
+
+
+def parse_profile_ref(text: str) -> tuple[str, int | None]:
+    """`name` or `name@version` -> `(name, version or None)`; ValueError says what is wrong."""
+    name, at, version = text.partition("@")
+    try:
+        name = _NAME.validate_python(name)
+    except ValidationError as exc:
+        raise ValueError(f"profile must be 'name' or 'name@version', got {text!r}: name "
+                         f"{_reason(exc)}") from None
+    return name, parse_version(version) if at else None
+
+
+def _profile_ref(text: str) -> str:
+    parse_profile_ref(text)
+    return text
+
+
+#: `name` or `name@version` in a request body or query, checked by `parse_profile_ref`. The
+#: schema's pattern (what clients and schema-driven generators see) admits a subset of it.
+ProfileRefText = Annotated[str, Field(
+    max_length=80, examples=["lidar", "lidar@2"],
+    json_schema_extra={"pattern": r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}(@[1-9][0-9]{0,8})?$"}),
+    AfterValidator(_profile_ref)]
+
+
+def non_finite_path(value: Any, path: tuple[str | int, ...] = ()
+                    ) -> tuple[tuple[str | int, ...], float] | None:
+    """The path and value of the first NaN or infinity inside a parsed JSON value, or None.
+    (The JSON parser bounds the nesting depth, so the recursion is bounded too.)"""
+    if isinstance(value, float):
+        return None if math.isfinite(value) else (path, value)
+    if isinstance(value, dict):
+        items: Any = value.items()
+    elif isinstance(value, list):
+        items = enumerate(value)
+    else:
+        return None
+    for key, item in items:
+        found = non_finite_path(item, (*path, key))
+        if found is not None:
+            return found
+    return None
+
+
+def _finite_json(value: Any) -> Any:
+    found = non_finite_path(value)
+    if found is not None:
+        where, x = "".join(f"[{k!r}]" for k in found[0]), found[1]
+        number = "NaN" if math.isnan(x) else "Infinity" if x > 0 else "-Infinity"
+        raise ValueError(f"{'at ' + where + ': ' if where else ''}{number} is not a finite "
+                         f"number (JSON has none; a number beyond the float range is one)")
+    return value
+
+
+#: Any JSON value, refused if it holds a NaN or an infinity anywhere (a number beyond the
+#: float range, such as 1e400, is one); for free-form client data that is echoed back.
+FiniteJson = Annotated[Any, AfterValidator(_finite_json)]
 
 
 class ProfileRef(BaseModel):

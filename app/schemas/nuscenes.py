@@ -1,15 +1,16 @@
 """A nuScenes detection results document (the devkit's submission format), as accepted and
 returned by POST /v1/calibrate/nuscenes, with the extensions of docs/formats.md
-(`detection_logits`, `covariance`, `detection_score_raw`). Unknown keys are kept."""
+(`detection_logits`, `covariance`, `detection_score_raw`). Unknown keys are kept, and echoed
+back, so they and `meta` must hold finite numbers only (a NaN anywhere is a 422 naming it)."""
 
 from __future__ import annotations
 
-from typing import Annotated, Any
+from typing import Annotated
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.schemas.calibrate import Covariance
-from app.schemas.common import Finite, Probability
+from app.schemas.common import Finite, FiniteJson, Probability
 
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 
@@ -28,6 +29,7 @@ class NuScenesBox(BaseModel):
     """One `DetectionBox` of a results document; an optional `covariance` `[D, D]` extra key."""
 
     model_config = ConfigDict(extra="allow")
+    __pydantic_extra__: dict[str, FiniteJson] = Field(init=False)
 
     sample_token: str
     translation: Vec3
@@ -50,6 +52,7 @@ class NuScenesResults(BaseModel):
     """`{"meta": ..., "results": {sample_token: [DetectionBox, ...]}}`."""
 
     model_config = ConfigDict(extra="allow", json_schema_extra={"examples": [_EXAMPLE]})
+    __pydantic_extra__: dict[str, FiniteJson] = Field(init=False)
 
-    meta: dict[str, Any] = Field(default_factory=dict)
+    meta: dict[str, FiniteJson] = Field(default_factory=dict)
     results: dict[str, list[NuScenesBox]]
