@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.openapi.utils import get_openapi
 from fastapi.responses import Response
 from pydantic import BaseModel, ValidationError
+from starlette.concurrency import run_in_threadpool
 
 from app.deps import require_json
 
@@ -30,8 +31,8 @@ def json_body(model: type[M]) -> Callable[[Request], Awaitable[M]]:
     async def parse(request: Request) -> M:
         require_json(request)
         raw = await request.body()
-        try:
-            return model.model_validate_json(raw, strict=True)
+        try:   # parsing a large body takes a while: off the event loop, /healthz stays quick
+            return await run_in_threadpool(_validate, model, raw)
         except ValidationError as exc:
             errors = exc.errors(include_url=False, include_input=False, include_context=False)
             raise RequestValidationError(
@@ -39,6 +40,10 @@ def json_body(model: type[M]) -> Callable[[Request], Awaitable[M]]:
 
     parse.__name__ = f"parse_{model.__name__}"
     return parse
+
+
+def _validate(model: type[M], raw: bytes) -> M:
+    return model.model_validate_json(raw, strict=True)
 
 
 def body_doc(model: type[BaseModel]) -> dict[str, Any]:

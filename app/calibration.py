@@ -91,7 +91,7 @@ def _default_locate(fi: int, di: int) -> list[str | int]:
 def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
                      confidence: float, locate: Locate = _default_locate, *,
                      levels: Sequence[float] = DEFAULT_LEVELS, options_in: str = "body",
-                     ) -> list[list[dict[str, object]]]:
+                     max_detections: int | None = None) -> list[list[dict[str, object]]]:
     """Calibrated detection rows (response dicts) per frame, in request order, with the
     ellipse at `confidence` and the regions at `levels`.
 
@@ -99,6 +99,11 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
     `options_in` is where the request carries `levels` and `ellipse_confidence` ("body" or
     "query").
     """
+    total = sum(len(frame.detections) for frame in frames)
+    if max_detections is not None and total > max_detections:
+        raise RequestError([options_in, "frames"], f"the request carries {total} detections; at "
+                           f"most {max_detections} are calibrated per request "
+                           f"(DETCAL_MAX_DETECTIONS): split it", status=413)
     try:
         levels = check_levels(levels).tolist()
     except FieldError as exc:

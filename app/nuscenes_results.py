@@ -44,7 +44,8 @@ def box_to_detection(box: NuScenesBox, loc: Sequence[str | int]) -> DetectionIn:
 
 
 def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: float,
-                      levels: Sequence[float]) -> tuple[dict[str, Any], int]:
+                      levels: Sequence[float], max_detections: int | None = None
+                      ) -> tuple[dict[str, Any], int]:
     """The calibrated results document and the number of boxes calibrated (`levels`: the
     query's, checked by `calibrate_frames`)."""
     tokens = list(doc.results)
@@ -57,7 +58,7 @@ def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: f
         detections=[box_to_detection(b, locate(fi, di)) for di, b in enumerate(doc.results[t])])
         for fi, t in enumerate(tokens)]
     rows = calibrate_frames(loaded, frames, confidence, locate=locate, levels=levels,
-                            options_in="query")
+                            options_in="query", max_detections=max_detections)
     n = 0
     results: dict[str, list[dict[str, Any]]] = {}
     for token, frame_rows in zip(tokens, rows, strict=True):

@@ -26,7 +26,8 @@ def calibrate(body: Annotated[CalibrateRequest, Depends(json_body(CalibrateReque
               cache: CacheDep, settings: SettingsDep, metrics: MetricsDep) -> Response:
     """Calibrate raw detections with the active (or a named) profile version."""
     loaded = cache.resolve(body.profile, settings.default_profile)
-    rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence, levels=body.levels)
+    rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence, levels=body.levels,
+                            max_detections=settings.max_detections)
     metrics.detections.labels(loaded.record.name).inc(sum(len(r) for r in rows))
     prof = loaded.profile
     return json_response({
@@ -52,6 +53,7 @@ def calibrate_nuscenes(
     """Calibrate a nuScenes results document; scores replaced, raw score, Σ', ellipses added."""
     loaded = cache.resolve(profile, settings.default_profile, loc=("query", "profile"))
     doc, n = calibrate_results(loaded, body, ellipse_confidence,
-                               DEFAULT_LEVELS if levels is None else levels)
+                               DEFAULT_LEVELS if levels is None else levels,
+                               max_detections=settings.max_detections)
     metrics.detections.labels(loaded.record.name).inc(n)
     return json_response(doc)

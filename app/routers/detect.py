@@ -38,7 +38,8 @@ def detect(body: Annotated[DetectRequest, Depends(json_body(DetectRequest))], ca
     seed = None if body.points is not None else (body.seed or 0)
     frame = FrameIn.model_construct(frame_id=f"{body.sensor}-{seed}", ego_translation=None,
                                     detections=detections_of(out, loaded))
-    rows = calibrate_frames(loaded, [frame], body.ellipse_confidence, levels=body.levels)[0]
+    rows = calibrate_frames(loaded, [frame], body.ellipse_confidence, levels=body.levels,
+                            max_detections=settings.max_detections)[0]
     metrics.detections.labels(loaded.record.name).inc(len(rows))
     prof = loaded.profile
     gt = [{"label": prof.classes[int(c)], "box": b} for c, b in

@@ -228,3 +228,21 @@ def test_meta_and_unknown_keys_are_echoed_as_strict_json(client):
     body = _strict_json(r.text)
     assert body["meta"] == doc["meta"] and body["extra"] == doc["extra"]
     assert body["results"]["t"][0]["note"] == {"z": [1.5]}
+
+
+def test_too_many_detections_is_a_413_naming_the_limit(seeded, detection, dump_given):
+    from fastapi.testclient import TestClient
+
+    from app.main import create_app
+
+    limited = seeded.model_copy(update={"max_detections": 3})
+    with TestClient(create_app(limited)) as client:
+        frames = [{"frame_id": "f", "detections": [detection(dump_given, i) for i in range(4)]}]
+        r = client.post("/v1/calibrate", json={"frames": frames})
+        assert r.status_code == 413, r.text
+        detail = r.json()["detail"][0]
+        assert detail["loc"] == ["body", "frames"] and "at most 3" in detail["msg"]
+        three = [detection(dump_given, i) for i in range(3)]
+        ok = client.post("/v1/calibrate",
+                         json={"frames": [{"frame_id": "f", "detections": three}]})
+        assert ok.status_code == 200, ok.text
