@@ -231,15 +231,18 @@ def load_input(path: str, nuscenes_gt: str | None) -> tuple[Any, str]:
     from calibrators.io import file_sha256, load_dump, load_nuscenes
 
     p = _existing(path)
-    if nuscenes_gt is not None:
-        gt = _existing(nuscenes_gt)
-        dump = load_nuscenes(str(p), str(gt))
-        pair = f"{file_sha256(str(p))}\n{file_sha256(str(gt))}"
-        return dump, hashlib.sha256(pair.encode()).hexdigest()
-    if p.suffix.lower() == ".json":
+    if p.suffix.lower() == ".json" and nuscenes_gt is None:
         raise CliError(f"{path} is a JSON file: a nuScenes results JSON needs --nuscenes-gt "
                        f"GT.json")
-    return load_dump(str(p)), file_sha256(str(p))
+    try:   # the library's messages name no file (a service must not show its paths): here do
+        if nuscenes_gt is None:
+            return load_dump(str(p)), file_sha256(str(p))
+        gt = _existing(nuscenes_gt)
+        dump = load_nuscenes(str(p), str(gt))
+    except ValueError as exc:
+        raise CliError(f"{path}: {exc}") from None
+    pair = f"{file_sha256(str(p))}\n{file_sha256(str(gt))}"
+    return dump, hashlib.sha256(pair.encode()).hexdigest()
 
 
 def load_profile(path: str) -> Any:

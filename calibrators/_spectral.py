@@ -9,14 +9,16 @@ from __future__ import annotations
 
 import numpy as np
 
+from calibrators.checks import covariance_tolerance
+
 
 def _spectral(cov: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigenvalues `[D, N]` of Σ = U Λ Uᵀ and `(Uᵀ r)² [D, N]`, by `np.linalg.eigh`."""
-    scale = np.maximum(np.abs(cov).reshape(len(cov), -1).max(axis=1), 1.0)
+    tol = covariance_tolerance(np.abs(cov).reshape(len(cov), -1).max(axis=1), cov.shape[1])
     _check_symmetric(np.abs(cov - np.swapaxes(cov, 1, 2)).reshape(len(cov), -1).max(axis=1),
-                     scale)
+                     tol)
     eig, vecs = np.linalg.eigh(cov)
-    _check_psd(eig[:, 0], scale)
+    _check_psd(eig[:, 0], tol)
     sq = np.einsum("nij,ni->jn", vecs, r) ** 2
     return _zero_tiny(np.ascontiguousarray(eig.T)), np.ascontiguousarray(sq)
 
@@ -35,9 +37,9 @@ def _spectral_2x2(cov: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarra
     scale = np.abs(a)
     for other in (c, b):
         np.maximum(scale, np.abs(other), out=scale)
-    np.maximum(scale, 1.0, out=scale)
+    tol = covariance_tolerance(scale, 2)
     b_t -= b
-    _check_symmetric(np.abs(b_t, out=b_t), scale)
+    _check_symmetric(np.abs(b_t, out=b_t), tol)
 
     diff = a - c
     diff *= 0.5
@@ -52,7 +54,7 @@ def _spectral_2x2(cov: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarra
     eig[1] *= 0.5
     np.subtract(eig[1], half_gap, out=eig[0])
     eig[1] += half_gap
-    _check_psd(eig[0], scale)
+    _check_psd(eig[0], tol)
 
     sq = np.empty((2, n))
     rr, p_hi = sq[0], sq[1]
@@ -83,16 +85,18 @@ def _zero_tiny(eig: np.ndarray) -> np.ndarray:
     return eig
 
 
-def _check_symmetric(gap: np.ndarray, scale: np.ndarray, tol: float = 1e-9) -> None:
-    """The symmetry test of `checks.check_covariances` on `max |Σ - Σᵀ|` per matrix."""
-    asym = gap > tol * scale
+def _check_symmetric(gap: np.ndarray, tol: np.ndarray) -> None:
+    """The symmetry test of `checks.check_covariances` on `max |Σ - Σᵀ|` per matrix, with
+    its allowance `tol` (`checks.covariance_tolerance`)."""
+    asym = gap > tol
     if asym.any():
         raise ValueError(f"covariances[{int(np.argmax(asym))}] is not symmetric")
 
 
-def _check_psd(eig_min: np.ndarray, scale: np.ndarray, tol: float = 1e-9) -> None:
-    """The PSD test of `checks.check_covariances` on the smallest eigenvalues `[N]`."""
-    bad = eig_min < -tol * scale
+def _check_psd(eig_min: np.ndarray, tol: np.ndarray) -> None:
+    """The PSD test of `checks.check_covariances` on the smallest eigenvalues `[N]`, with its
+    allowance `tol` (`checks.covariance_tolerance`)."""
+    bad = eig_min < -tol
     if bad.any():
         i = int(np.argmax(bad))
         raise ValueError(f"covariances[{i}] is not positive semi-definite (smallest eigenvalue "

@@ -78,9 +78,32 @@ def check_probabilities(name: str, arr: np.ndarray) -> None:
                          row=int(np.unravel_index(i, arr.shape)[0]))
 
 
+def covariance_tolerance(magnitude: np.ndarray, dim: int,
+                         dtype: np.dtype | type = np.float64) -> np.ndarray:
+    """Rounding allowance of the symmetry and PSD tests, per matrix: `8·D·ε·magnitude`.
+
+    `magnitude` `[N]` is each matrix's largest absolute entry (within a factor D of its largest
+    absolute eigenvalue), `ε` the machine epsilon of `dtype` but never finer than float32's: a
+    float64 array (or JSON) usually carries a float32 detector's numbers, whose rounding moves
+    an eigenvalue of a PSD matrix by up to about `D·ε·magnitude` below 0. The allowance scales
+    with the matrix, so no absolute floor: a 1e200 covariance and a 1e-12 one are judged alike.
+    """
+    kind = np.dtype(dtype)
+    eps = np.finfo(np.float32).eps
+    if kind.kind == "f":
+        eps = max(eps, np.finfo(kind).eps)
+    return np.asarray(magnitude, dtype=np.float64) * (8.0 * max(int(dim), 1) * float(eps))
+
+
 def check_covariances(name: str, cov: np.ndarray, n: int | None = None, dim: int | None = None,
-                      tol: float = 1e-9) -> None:
-    """Raise unless `cov` is `[N, D, D]`, symmetric and positive semi-definite."""
+                      dtype: np.dtype | type | None = None) -> None:
+    """Raise unless `cov` is `[N, D, D]`, symmetric and positive semi-definite.
+
+    Both tests allow rounding relative to each matrix (`covariance_tolerance`, with `dtype`
+    the precision the numbers were computed in, default `cov.dtype`): `Σ - Σᵀ` and the
+    smallest eigenvalue may be off by `8·D·ε·max|Σ|`; an indefinite matrix such as
+    [[1, 2], [2, 1]] (smallest eigenvalue -1) is refused at any scale.
+    """
     if cov.ndim != 3 or cov.shape[1] != cov.shape[2]:
         raise FieldError(name, f"{name} must have shape [N, D, D], got {cov.shape}")
     if n is not None and cov.shape[0] != n:
@@ -88,19 +111,21 @@ def check_covariances(name: str, cov: np.ndarray, n: int | None = None, dim: int
     if dim is not None and cov.shape[1] != dim:
         raise FieldError(name, f"{name} must be {dim}x{dim}, got {cov.shape[1]}x{cov.shape[2]}")
     check_finite(name, cov)
-    if cov.shape[0] == 0:
+    if cov.shape[0] == 0 or cov.shape[1] == 0:
         return
-    scale = np.maximum(np.abs(cov).max(axis=(1, 2)), 1.0)
-    asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2)) > tol * scale
+    tol = covariance_tolerance(np.abs(cov).max(axis=(1, 2)), cov.shape[1],
+                               cov.dtype if dtype is None else dtype)
+    asym = np.abs(cov - np.swapaxes(cov, 1, 2)).max(axis=(1, 2)) > tol
     if asym.any():
         i = int(np.argmax(asym))
         raise FieldError(name, f"{name}[{i}] is not symmetric", row=i)
     eig_min = np.linalg.eigvalsh(cov)[:, 0]
-    bad = eig_min < -tol * scale
+    bad = eig_min < -tol
     if bad.any():
         i = int(np.argmax(bad))
         raise FieldError(name, f"{name}[{i}] is not positive semi-definite (smallest "
-                               f"eigenvalue {eig_min[i]:.3g})", row=i)
+                               f"eigenvalue {eig_min[i]:.3g}, allowed rounding "
+                               f"{-tol[i]:.3g})", row=i)
 
 
 def check_choice(name: str, value: str, choices: Sequence[str]) -> None:

@@ -50,12 +50,14 @@ def fit(
     if dump is not None:
         stored = store.put_dump(dump.file, "npz")
         gt_sha = None
-        loaded = _check(lambda: load_dump(store.dump_path(stored.sha256)), "dump")
+        loaded = _check(lambda: load_dump(store.dump_path(stored.sha256),
+                                          max_bytes=settings.max_dump_bytes), "dump")
     else:
         stored = store.put_dump(results.file, "nuscenes-results")  # type: ignore[union-attr]
         gt_sha = store.put_dump(gt.file, "nuscenes-gt").sha256  # type: ignore[union-attr]
         loaded = _check(lambda: load_nuscenes(store.dump_path(stored.sha256),
-                                              store.dump_path(gt_sha)), "results")
+                                              store.dump_path(gt_sha),
+                                              max_bytes=settings.max_dump_bytes), "results")
     try:
         check_fit_input(loaded, fit_options)
     except OptionError as exc:
@@ -69,8 +71,23 @@ def fit(
 
 
 def _check(load: Callable[[], Dump], field: str) -> Dump:
-    """Load the stored upload once so a malformed dump is a 422 now, not a failed job later."""
+    """Load the stored upload once so a malformed dump is a 422 now, not a failed job later.
+
+    Every loader error is a 422 at `body.<field>`: the library's ValueErrors (FieldError
+    included: its key is in the message) and, as a last resort, any other error a malformed
+    file could still raise (MemoryError, RecursionError: the loaders refuse oversized and too
+    deeply nested files before they get there).
+    """
     try:
         return load()
-    except (ValueError, KeyError, OSError, EOFError) as exc:
-        raise RequestError(["body", field], f"not a valid validation dump: {exc}") from None
+    except ValueError as exc:
+        reason = f"not a valid validation dump: {exc}"
+    except (KeyError, TypeError, OverflowError, IndexError) as exc:
+        reason = f"not a valid validation dump ({type(exc).__name__}): {exc}"
+    except MemoryError:
+        reason = "the dump is too large to load"
+    except RecursionError:
+        reason = "the dump is nested too deeply to load"
+    except (OSError, EOFError) as exc:  # the stored copy is unreadable: no server path shown
+        reason = f"the dump cannot be read: {getattr(exc, 'strerror', None) or type(exc).__name__}"
+    raise RequestError(["body", field], reason)

@@ -14,6 +14,8 @@ from __future__ import annotations
 import copy
 import json
 import os
+import re
+import reprlib
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
@@ -29,7 +31,7 @@ from calibrators.checks import (
 )
 from calibrators.dump import Dump
 from calibrators.io.atomic import atomic_write
-from calibrators.vocab import BOX_FIELDS, quaternion_yaw
+from calibrators.vocab import BOX_FIELDS, SCORE_MODES, quaternion_yaw
 
 if TYPE_CHECKING:
     from calibrators.serving import CalibratedDetections
@@ -39,34 +41,46 @@ NUSCENES_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "p
 EGO_TOLERANCE = 0.01  # metres: boxes of one frame must agree on the ego position to this
 OTHER_CLASS_PROB = 1e-6  # probability given to the other classes when only a score is known
 _SCORE_CLIP = 1e-12
+_SHORT = reprlib.Repr()  # values in messages: 2 levels, 4 items, 40 characters
+_SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict, _SHORT.maxstring = 2, 4, 4, 40
+#: Largest results / ground-truth file `load_nuscenes` parses (bytes); `max_bytes=` changes it.
+MAX_JSON_BYTES = 512 * 2**20
+#: Deepest nesting of arrays and objects accepted (a results document with ellipses has 6).
+MAX_DEPTH = 32
 _DEVKIT_META = {"use_camera": False, "use_lidar": False, "use_radar": False, "use_map": False,
                 "use_external": False}
 
 
 def load_nuscenes(results_path: str | os.PathLike[str],
                   gt_path: str | os.PathLike[str] | None = None,
-                  classes: Sequence[str] | None = None) -> Dump:
+                  classes: Sequence[str] | None = None, *,
+                  max_bytes: int | None = None) -> Dump:
     """Read a results JSON and, optionally, its ground-truth JSON into a `Dump` (L = 1 layer).
 
     `classes` defaults to meta["classes"] of the results file, else the 10 nuScenes classes.
     Ground-truth boxes with `num_pts == 0` are dropped (the devkit never evaluates them).
     Without `gt_path` the dump has no ground truth (G = 0) and its frames are the results
     file's sample tokens: enough to calibrate detections, not to fit or evaluate.
+
+    A file larger than `max_bytes` (default `MAX_JSON_BYTES`, 512 MiB), or nested deeper than
+    `MAX_DEPTH` arrays/objects, is refused before it is parsed. Every error is a ValueError
+    naming the file and the key path (`meta.classes`, `results['tok'][3].num_pts`); messages
+    never show the file's path.
     """
-    results, meta = _read(results_path, "results")
-    classes = tuple(str(c) for c in (classes if classes is not None
-                                     else meta.get("classes", NUSCENES_CLASSES)))
+    results, meta = _read(results_path, "results", max_bytes)
+    classes = _classes(meta) if classes is None else tuple(str(c) for c in classes)
     tokens = list(results)
     if gt_path is None:
         gt: dict = {token: [] for token in tokens}
     else:
-        gt = _read(gt_path, "ground truth")[0]
+        gt = _read(gt_path, "ground truth", max_bytes)[0]
         _check_same_tokens(results, gt)
     det = _parse(results, tokens, classes, "results", prediction=True)
     ref = _parse(gt, tokens, classes, "ground truth", prediction=False)
     keep = ref["num_pts"] != 0
 
-    cov_dims = tuple(meta.get("cov_dims", ("x", "y")))
+    cov_dims = _class_list("meta.cov_dims", meta["cov_dims"]) if "cov_dims" in meta \
+        else ("x", "y")
     logits, score_mode = _logits(det, classes, meta)
     return Dump(
         classes=classes, score_mode=score_mode, frame_ids=np.array(tokens, dtype=str),
@@ -206,19 +220,84 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
 
 
 # -- reading ----------------------------------------------------------------------------------
-def _read(path: str | os.PathLike[str], what: str) -> tuple[dict, dict]:
+def _read(path: str | os.PathLike[str], what: str, max_bytes: int | None
+          ) -> tuple[dict, dict]:
+    """(results, meta) of a file, refused by size and nesting depth before it is parsed."""
+    max_bytes = MAX_JSON_BYTES if max_bytes is None else max_bytes
+    if isinstance(max_bytes, bool) or not isinstance(max_bytes, int) or max_bytes <= 0:
+        raise ValueError(f"max_bytes must be a positive integer, got {max_bytes!r}")
     try:
-        with open(path, encoding="utf-8") as fh:
-            content = json.load(fh)
+        with open(path, "rb") as fh:
+            size = os.fstat(fh.fileno()).st_size
+            data = b"" if size > max_bytes else fh.read(max_bytes + 1)
+    except FileNotFoundError:
+        raise
+    except OSError as exc:
+        raise ValueError(f"{what} file cannot be read: {exc.strerror or exc}") from None
+    if size > max_bytes or len(data) > max_bytes:
+        raise ValueError(f"{what} file is larger than the limit of {max_bytes} bytes")
+    depth = _depth(data)
+    if depth > MAX_DEPTH:
+        raise ValueError(f"{what} file nests arrays/objects {depth} deep; at most {MAX_DEPTH} "
+                         "levels are accepted")
+    try:
+        content = json.loads(data)
     except json.JSONDecodeError as exc:
-        raise ValueError(f"{what} file {os.fspath(path)!r} is not valid JSON: {exc}") from None
+        raise ValueError(f"{what} file is not valid JSON: {exc}") from None
+    except (ValueError, RecursionError) as exc:  # bad UTF-8, an int over 4300 digits
+        raise ValueError(f"{what} file is not valid JSON: {exc}") from None
     if not isinstance(content, dict) or not isinstance(content.get("results"), dict):
-        raise ValueError(f"{what} file {os.fspath(path)!r} must be an object with a 'results' "
-                         "object mapping sample tokens to lists of boxes")
+        raise ValueError(f"{what} file must be an object with a 'results' object mapping "
+                         "sample tokens to lists of boxes")
     meta = content.get("meta", {})
     if not isinstance(meta, dict):
-        raise ValueError(f"{what} 'meta' must be an object")
+        raise ValueError(f"{what} 'meta' must be an object, got {_kind(meta)}")
     return content["results"], meta
+
+
+_STRING = re.compile(rb'"[^"\\]*(?:\\.[^"\\]*)*"')
+_BRACKETS = bytes.maketrans(b"[{]}", b"(())")
+_NOT_BRACKETS = bytes(b for b in range(256) if b not in b"[]{}")
+
+
+def _depth(data: bytes) -> int:
+    """Nesting depth of arrays and objects in JSON text, up to MAX_DEPTH + 1, without
+    recursion: strings are dropped, brackets kept, and innermost pairs peeled once per level
+    (all in C: a few passes over the brackets of a well-formed document)."""
+    nest = _STRING.sub(b"", data).translate(_BRACKETS, _NOT_BRACKETS)
+    depth = 0
+    while nest and depth <= MAX_DEPTH:
+        peeled = nest.replace(b"()", b"")
+        if len(peeled) == len(nest):  # unbalanced: the JSON parser says where
+            break
+        nest, depth = peeled, depth + 1
+    return depth
+
+
+def _kind(value: object) -> str:
+    """A short description of a JSON value for messages (never the whole value)."""
+    if value is None:
+        return "null"
+    if isinstance(value, bool):
+        return f"the boolean {str(value).lower()}"
+    if isinstance(value, int | float | str):
+        return _SHORT.repr(value)
+    return f"an {'array' if isinstance(value, list) else 'object'} {_SHORT.repr(value)}"
+
+
+def _class_list(key: str, value: object) -> tuple[str, ...]:
+    """A non-empty list of strings (class names or cov_dims), or a ValueError naming `key`."""
+    if isinstance(value, str) or not isinstance(value, Sequence) or not value \
+            or not all(isinstance(v, str) for v in value):
+        raise ValueError(f"{key} must be a non-empty list of strings, got {_kind(value)}")
+    return tuple(value)
+
+
+def _classes(meta: dict) -> tuple[str, ...]:
+    """meta.classes, or the 10 nuScenes classes when the key is absent."""
+    if "classes" not in meta:
+        return NUSCENES_CLASSES
+    return _class_list("meta.classes", meta["classes"])
 
 
 def _check_same_tokens(results: dict, gt: dict) -> None:
@@ -244,10 +323,12 @@ def _parse(boxes: dict, tokens: list[str], classes: tuple[str, ...], what: str,
             if not isinstance(box, dict):
                 raise ValueError(f"{where} must be an object")
             if box.get("sample_token", token) != token:
-                raise ValueError(f"{where}.sample_token is {box['sample_token']!r}, not {token!r}")
+                raise ValueError(f"{where}.sample_token is {_kind(box['sample_token'])}, not "
+                                 f"{token!r}")
             name = box.get("detection_name")
-            if name not in index:
-                raise ValueError(f"{where}.detection_name {name!r} is not one of {list(classes)}")
+            if not isinstance(name, str) or name not in index:
+                raise ValueError(f"{where}.detection_name must be one of {list(classes)}, "
+                                 f"got {_kind(name)}")
             t = _vector(box, "translation", 3, where)
             size = _vector(box, "size", 3, where)
             yaw = _yaw(_vector(box, "rotation", 4, where), where)
@@ -258,7 +339,7 @@ def _parse(boxes: dict, tokens: list[str], classes: tuple[str, ...], what: str,
             rel = box.get("ego_translation")
             rel = None if rel is None else _vector(box, "ego_translation", 3, where)
             ego_rel.append(None if rel is None or not np.any(rel) else rel)
-            num_pts.append(int(box.get("num_pts", -1)))
+            num_pts.append(_num_pts(box, where))
             if prediction:
                 score.append(_vector(box, "detection_score", 0, where))
                 logits.append(box.get("detection_logits"))
@@ -270,17 +351,33 @@ def _parse(boxes: dict, tokens: list[str], classes: tuple[str, ...], what: str,
 
 
 def _vector(box: dict, key: str, n: int, where: str) -> np.ndarray:
+    """`n` numbers (`n = 0`: one number) at `box[key]`: JSON numbers only, finite."""
     if key not in box:
         raise ValueError(f"{where} is missing {key!r}")
-    try:
-        value = np.asarray(box[key], dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(f"{where}.{key} must be numeric, got {box[key]!r}") from None
-    if value.shape != ((n,) if n else ()):
-        raise ValueError(f"{where}.{key} must be {n} numbers" if n else
-                         f"{where}.{key} must be a number")
+    raw = box[key]
+    items = raw if n and isinstance(raw, list) else [raw]
+    if (len(items) != max(n, 1) or (n and not isinstance(raw, list))
+            or not all(_is_number(v) for v in items)):
+        want = f"{n} numbers" if n else "a number"
+        raise ValueError(f"{where}.{key} must be {want}, got {_kind(raw)}")
+    value = np.array(items if n else items[0], dtype=float)
     if not np.all(np.isfinite(value)):
-        raise ValueError(f"{where}.{key} has NaN or Inf: {box[key]!r}")
+        raise ValueError(f"{where}.{key} has NaN or Inf: {_kind(raw)}")
+    return value
+
+
+def _is_number(value: object) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def _num_pts(box: dict, where: str) -> int:
+    """num_pts as an int (-1 when absent): a whole, finite JSON number."""
+    value = box.get("num_pts", -1)
+    if isinstance(value, float) and value.is_integer():
+        value = int(value)
+    if not isinstance(value, int) or isinstance(value, bool) or not -2**62 < value < 2**62:
+        raise ValueError(f"{where}.num_pts must be a whole number (lidar points in the box), "
+                         f"got {_kind(value)}")
     return value
 
 
@@ -332,7 +429,7 @@ def _logits(det: dict, classes: tuple[str, ...], meta: dict) -> tuple[np.ndarray
         raise ValueError(f"results box {given.index(False)} lacks detection_logits while others "
                          "have them; give them for every box or for none")
     if not any(given):
-        if meta.get("score_mode", "sigmoid") != "sigmoid":
+        if _score_mode(meta, "sigmoid") != "sigmoid":
             raise ValueError("meta.score_mode is softmax but the boxes have no detection_logits")
         scores = det["score"].reshape(-1)
         check_probabilities("detection_score", scores)
@@ -341,7 +438,7 @@ def _logits(det: dict, classes: tuple[str, ...], meta: dict) -> tuple[np.ndarray
         out[np.arange(n), det["label"]] = z
         return out, "sigmoid"
     logits = as_float_array("detection_logits", det["logits"], ndim=2)
-    mode = meta.get("score_mode", "sigmoid" if logits.shape[1] == c else "softmax")
+    mode = _score_mode(meta, "sigmoid" if logits.shape[1] == c else "softmax")
     want = c + (mode == "softmax")
     if logits.shape[1] != want:
         raise ValueError(f"detection_logits have {logits.shape[1]} entries but {mode} mode with "
@@ -353,6 +450,13 @@ def _logits(det: dict, classes: tuple[str, ...], meta: dict) -> tuple[np.ndarray
         raise ValueError(f"results box {k}: detection_name {classes[det['label'][k]]!r} is not "
                          f"the arg-max of its detection_logits ({classes[arg[k]]!r})")
     return logits, mode
+
+
+def _score_mode(meta: dict, default: str) -> str:
+    mode = meta.get("score_mode", default)
+    if mode not in SCORE_MODES:
+        raise ValueError(f"meta.score_mode must be one of {list(SCORE_MODES)}, got {_kind(mode)}")
+    return mode
 
 
 def _covariances(det: dict, d: int) -> np.ndarray | None:

@@ -3,13 +3,17 @@
 from __future__ import annotations
 
 import hashlib
+import io
 import json
+import tracemalloc
+import zipfile
 
 import numpy as np
 import pytest
 
 from calibrators.dump import Dump
 from calibrators.evaluate import evaluate
+from calibrators.exceptions import FieldError
 from calibrators.io import (
     calibrate_results_document,
     file_sha256,
@@ -104,7 +108,14 @@ def test_unknown_key_is_refused(tmp_path):
     ("gt_labels", lambda a: a["gt_labels"][:-1], "gt_labels has 4 rows"),
     ("det_frame", lambda a: a["det_frame"][:, None], "det_frame must have 1 dimensions"),
     ("ego_translation", lambda a: a["ego_translation"][:, :2], "ego_translation must have shape"),
-    ("det_cov", lambda a: a["det_cov"][:, :1, :1], "det_cov must be 2x2"),
+    ("det_cov", lambda a: a["det_cov"][:, :1, :1], r"det_cov must have shape \[12, 2, 2\]"),
+    ("det_frame", lambda a: a["det_frame"][:-2], "det_frame has 10 rows but det_logits has 12"),
+    ("det_cov", lambda a: a["det_cov"][:-1], "det_cov has 11 rows but det_logits has 12"),
+    ("frame_ids", lambda a: a["frame_ids"][:-1], "ego_translation has 3 rows but frame_ids"),
+    ("det_logits", lambda a: a["det_logits"] + 1j, "key 'det_logits' is complex"),
+    ("det_cov", lambda a: a["det_cov"].astype(np.complex64), "key 'det_cov' is complex"),
+    ("gt_boxes", lambda a: a["gt_boxes"].astype("datetime64[s]"),
+     "gt_boxes must be a real numeric array"),
     ("score_mode", lambda a: np.array(["sigmoid"]), "score_mode must be a scalar"),
     ("score_mode", lambda a: np.array("logistic"), "score_mode must be one of"),
     ("classes", lambda a: np.arange(3), "classes must be a string array"),
@@ -146,8 +157,9 @@ def test_pickled_arrays_are_never_loaded(tmp_path):
 
 def test_not_an_archive(tmp_path):
     (tmp_path / "x.npz").write_text("hello")
-    with pytest.raises(ValueError, match="not a readable NPZ"):
+    with pytest.raises(ValueError, match="not an NPZ archive: not a zip file") as err:
         load_dump(tmp_path / "x.npz")
+    assert str(tmp_path) not in str(err.value) and "pickle" not in str(err.value)
     np.save(tmp_path / "y.npy", np.zeros(3))
     with pytest.raises(ValueError, match="single array"):
         load_dump(tmp_path / "y.npy")
@@ -157,6 +169,79 @@ def test_bytes_strings_are_accepted(tmp_path):
     content = arrays()
     content["classes"] = np.array([c.encode() for c in CLASSES])
     assert load_dump(write(tmp_path / "a.npz", content)).classes == CLASSES
+
+
+def hostile_npz(content: dict, fake: dict | None = None) -> bytes:
+    """`content` as deflated NPZ bytes; each `fake` key -> (header shape, dtype, zero bytes) is
+    written with that .npy header and that many zero bytes of data, whatever the shape says
+    (a few MB of zeros deflate to a few kB)."""
+    fake = fake or {}
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w", zipfile.ZIP_DEFLATED) as zf:
+        for key, arr in content.items():
+            if key not in fake:
+                with zf.open(f"{key}.npy", "w") as fh:
+                    np.lib.format.write_array(fh, np.asarray(arr), allow_pickle=True)
+        for key, (shape, dtype, zeros) in fake.items():
+            with zf.open(f"{key}.npy", "w", force_zip64=True) as fh:
+                np.lib.format.write_array_header_1_0(fh, {
+                    "descr": np.lib.format.dtype_to_descr(np.dtype(dtype)),
+                    "fortran_order": False, "shape": shape})
+                for start in range(0, zeros, 2**20):
+                    fh.write(bytes(min(2**20, zeros - start)))
+    return buf.getvalue()
+
+
+def load_traced(data: bytes, **kw) -> tuple[BaseException, int]:
+    """The error `load_dump` raises on `data` and the peak bytes it allocated meanwhile."""
+    tracemalloc.start()
+    try:
+        load_dump(io.BytesIO(data), **kw)
+    except ValueError as exc:
+        return exc, tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    raise AssertionError("load_dump accepted a hostile file")
+
+
+def test_huge_declared_shape_is_refused_before_allocating():
+    data = hostile_npz(arrays(), {"det_logits": ((10**12, 3, 10), "<f8", 0)})
+    exc, peak = load_traced(data)
+    assert isinstance(exc, FieldError) and exc.field == "det_logits"
+    assert "(1000000000000, 3, 10)" in str(exc) and "limit" in str(exc)
+    assert peak < 2**20
+
+
+def test_deflated_zeros_over_the_limit_are_not_inflated():
+    """The bomb of the issue, scaled down: 9.6 MB of zeros in det_logits (9 kB deflated)
+    against max_bytes = 1 MiB, by its .npy header and by the zip's declared size alone."""
+    by_header = hostile_npz(arrays(), {"det_logits": ((40_000, 3, 10), "<f8", 9_600_000)})
+    assert len(by_header) < 100_000
+    exc, peak = load_traced(by_header, max_bytes=2**20)
+    assert exc.field == "det_logits" and "more than the limit of 1048576 bytes" in str(exc)
+    assert peak < 2**19
+    # an honest header followed by 9.6 MB of trailing zeros: the zip declares the size
+    trailing = hostile_npz(arrays(), {"det_logits": ((12, 2, 3), "<f8", 9_600_000)})
+    exc, peak = load_traced(trailing, max_bytes=2**20)
+    assert exc.field == "det_logits" and "inflates to" in str(exc)
+    assert peak < 2**19
+
+
+def test_total_size_and_truncated_members():
+    exc, _ = load_traced(hostile_npz(arrays()), max_bytes=3000)  # each key fits, not all
+    assert "inflates to" in str(exc) and "limit of 3000 bytes" in str(exc)
+    exc, _ = load_traced(hostile_npz(arrays(), {"det_boxes": ((12, 2, 9), "<f8", 10)}))
+    assert exc.field == "det_boxes" and "declares shape (12, 2, 9)" in str(exc)
+    with pytest.raises(ValueError, match="max_bytes must be a positive integer"):
+        load_dump(io.BytesIO(hostile_npz(arrays())), max_bytes=0)
+
+
+def test_fortran_order_and_big_endian_arrays_are_read(tmp_path):
+    content = arrays()
+    expected = load_dump(write(tmp_path / "a.npz", content))
+    content["det_logits"] = np.asfortranarray(content["det_logits"])
+    content["det_boxes"] = content["det_boxes"].astype(">f8")
+    assert_same(load_dump(io.BytesIO(hostile_npz(content))), expected)
 
 
 def test_file_sha256(tmp_path):
@@ -280,7 +365,7 @@ def test_ego_position_from_ego_translation(tmp_path):
     (lambda b: b.pop("translation"), "missing 'translation'"),
     (lambda b: b.update(velocity=[float("nan"), 0.0]), r"velocity has NaN"),
     (lambda b: b.update(size=[1.0, 2.0]), "size must be 3 numbers"),
-    (lambda b: b.update(detection_name="cat"), "detection_name 'cat'"),
+    (lambda b: b.update(detection_name="cat"), "detection_name must be one of .* got 'cat'"),
     (lambda b: b.update(detection_score=1.5), "detection_score must .*probabilities"),
     (lambda b: b.update(rotation=[0, 0, 0, 0]), "zero quaternion"),
     (lambda b: b.update(sample_token="zzz"), "sample_token is 'zzz'"),
@@ -303,6 +388,49 @@ def test_sample_tokens_must_agree(tmp_path):
         load_nuscenes(tmp_path / "bad.json", gt)
 
 
+@pytest.mark.parametrize("meta, box, message", [
+    ({"classes": 5}, {}, r"meta.classes must be a non-empty list of strings, got 5"),
+    ({"classes": None}, {}, "meta.classes must be a non-empty list of strings, got null"),
+    ({"classes": "car"}, {}, "meta.classes must be a non-empty list of strings"),
+    ({"cov_dims": 7}, {}, "meta.cov_dims must be a non-empty list of strings, got 7"),
+    ({"score_mode": ["softmax"]}, {}, "meta.score_mode must be one of"),
+    ({}, {"detection_name": ["car"]},
+     r"results\['a'\]\[0\].detection_name must be one of .*got an array"),
+    ({}, {"num_pts": None}, r"results\['a'\]\[0\].num_pts must be a whole number.*null"),
+    ({}, {"num_pts": [3]}, r"results\['a'\]\[0\].num_pts must be a whole number"),
+    ({}, {"num_pts": 2.5}, r"num_pts must be a whole number.*got 2.5"),
+    ({}, {"num_pts": "1e400"}, r"results\['a'\]\[0\].num_pts must be a whole number.*got inf"),
+    ({}, {"translation": ["1", 2, 3]}, r"results\['a'\]\[0\].translation must be 3 numbers"),
+    ({}, {"size": [True, 2.0, 1.0]}, r"results\['a'\]\[0\].size must be 3 numbers"),
+    ({}, {"detection_score": "0.5"}, r"detection_score must be a number, got '0.5'"),
+    ({}, {"velocity": {"x": 1}}, r"velocity must be 2 numbers, got an object"),
+])
+def test_malformed_nuscenes_values_name_the_key_path(tmp_path, meta, box, message):
+    b = {**devkit_box("a", "car", (1, 1, 0)), **box}
+    res, gt = write_pair(tmp_path, {"a": [b]}, {"a": []}, meta={**meta, "x": 0})
+    if b.get("num_pts") == "1e400":  # a number JSON can hold but a float cannot
+        res.write_text(res.read_text().replace('"num_pts": "1e400"', '"num_pts": 1e400'))
+    with pytest.raises(ValueError, match=message):
+        load_nuscenes(res, gt)
+
+
+def test_nuscenes_depth_and_size_are_refused_before_parsing(tmp_path):
+    res, gt = write_pair(tmp_path, {"a": [devkit_box("a", "car", (1, 1, 0))]}, {"a": []})
+    deep = '{"meta": {"classes": ' + "[" * 3000 + "]" * 3000 + '}, "results": {}}'
+    (tmp_path / "deep.json").write_text(deep)
+    with pytest.raises(ValueError, match="results file nests arrays/objects 33 deep"):
+        load_nuscenes(tmp_path / "deep.json", gt)
+    with pytest.raises(ValueError, match="ground truth file nests"):
+        load_nuscenes(res, tmp_path / "deep.json")
+    with pytest.raises(ValueError, match="larger than the limit of 100 bytes") as err:
+        load_nuscenes(res, gt, max_bytes=100)
+    assert str(tmp_path) not in str(err.value)
+    # brackets and escaped quotes inside strings do not count
+    tricky = devkit_box("a", "car", (1, 1, 0), attribute_name='\\"' + "[{" * 50)
+    res, gt = write_pair(tmp_path, {"a": [tricky]}, {"a": []})
+    assert load_nuscenes(res, gt).n_detections == 1
+
+
 def test_npz_through_a_file_object(tmp_path):
     import io
 
@@ -310,7 +438,7 @@ def test_npz_through_a_file_object(tmp_path):
     buf = io.BytesIO()
     save_dump(buf, dump)
     assert_same(load_dump(io.BytesIO(buf.getvalue())), dump)
-    with pytest.raises(ValueError, match="the file object is not a readable NPZ"):
+    with pytest.raises(ValueError, match="not an NPZ archive: not a zip file"):
         load_dump(io.BytesIO(b"garbage"))
 
 
