@@ -24,7 +24,7 @@ from app.cache import LoadedProfile
 from app.errors import RequestError
 from app.schemas.calibrate import DEFAULT_LEVELS, DetectionIn, FrameIn
 from calibrators.exceptions import FieldError
-from calibrators.io.nuscenes import ellipses_json
+from calibrators.io import ellipses_json
 from calibrators.levels import check_levels
 from calibrators.serving import CalibratedDetections
 

@@ -135,8 +135,7 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """`detcal calibrate`: write a calibrated nuScenes results JSON with ellipses per level."""
-    from calibrators.io import calibrate_results_document
-    from calibrators.io.nuscenes import ellipses_json
+    from calibrators.io import calibrate_results_document, ellipses_json
 
     levels = _levels(args.levels)
     profile = load_profile(args.profile)

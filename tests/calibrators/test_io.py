@@ -16,6 +16,7 @@ from calibrators.evaluate import evaluate
 from calibrators.exceptions import FieldError
 from calibrators.io import (
     calibrate_results_document,
+    ellipses_json,
     file_sha256,
     load_dump,
     load_nuscenes,
@@ -23,7 +24,6 @@ from calibrators.io import (
     save_nuscenes,
 )
 from calibrators.io.npz import OPTIONAL_KEYS, REQUIRED_KEYS
-from calibrators.io.nuscenes import ellipses_json
 
 CLASSES = ("car", "pedestrian", "traffic_cone")
 
