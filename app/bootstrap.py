@@ -27,7 +27,7 @@ def ensure_admin_token(settings: Settings, say: Say = print) -> Path | None:
     """Generate `data_dir/admin_token` (0600) if no token is configured; its path, or None."""
     if settings.admin_token is not None:
         return None
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    settings.data_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
     path = settings.data_dir / TOKEN_FILE
     token = secrets.token_urlsafe(32)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)

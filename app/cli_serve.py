@@ -27,7 +27,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def serve(args: argparse.Namespace) -> int:
-    """Apply the options to the environment (worker processes read it) and run uvicorn."""
+    """Apply the options to the environment (worker processes read it), make the data
+    directory private, and run uvicorn."""
     import uvicorn
 
     from app.settings import Settings, get_settings
@@ -39,6 +40,10 @@ def serve(args: argparse.Namespace) -> int:
             os.environ[f"DETCAL_{env}"] = str(value)
     get_settings.cache_clear()
     settings = Settings()
+    # Everything the server writes (store, WAL, dumps, token, and their directories) is
+    # private to its user; the worker processes inherit the mask.
+    os.umask(0o077)
+    settings.data_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
     if args.bootstrap:
         from app.bootstrap import ensure_admin_token, ensure_default_profile
 

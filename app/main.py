@@ -46,7 +46,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                      or "none")
         except ValueError as exc:  # a stored profile that no longer parses must not stop us
             log.error("could not load the active profiles: %s", exc)
-        runner = JobRunner(store, workers=settings.fit_workers)
+        runner = JobRunner(store, workers=settings.fit_workers,
+                           max_dump_bytes=settings.max_dump_bytes)
         app.state.store, app.state.cache, app.state.runner = store, cache, runner
         app.state.metrics.attach_store(store)
         runner.start()

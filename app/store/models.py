@@ -5,7 +5,17 @@ from __future__ import annotations
 from datetime import UTC, datetime
 from typing import Annotated
 
-from sqlalchemy import DateTime, Float, ForeignKey, String, Text, UniqueConstraint
+from sqlalchemy import (
+    Connection,
+    DateTime,
+    Float,
+    ForeignKey,
+    String,
+    Text,
+    UniqueConstraint,
+    inspect,
+    text,
+)
 from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column
 
 
@@ -44,7 +54,11 @@ class ProfileRow(Base):
 
 
 class ActiveRow(Base):
-    """The active version of each profile name (exactly one row per name that has versions)."""
+    """The active version of each profile name (exactly one row per name that has versions).
+
+    `generation` counts the pointer's moves (1 when created, +1 on every activation, even of
+    the version already active): a fit job compares it to the one it saw when submitted.
+    """
 
     __tablename__ = "active_profiles"
 
@@ -52,6 +66,7 @@ class ActiveRow(Base):
     profile_id: Mapped[int] = mapped_column(ForeignKey("profiles.id"))
     version: Mapped[int]
     activated_at: Mapped[Created]
+    generation: Mapped[int] = mapped_column(default=1, server_default=text("1"))
 
 
 class DumpRow(Base):
@@ -63,10 +78,17 @@ class DumpRow(Base):
     kind: Mapped[str] = mapped_column(String(32))
     size: Mapped[int]
     created_at: Mapped[Created]
+    #: Last upload of these bytes (clean-up keeps a dump this recent even if unreferenced).
+    used_at: Mapped[datetime | None]
 
 
 class JobRow(Base):
-    """A fit job: queued -> running -> succeeded | failed."""
+    """A fit job: queued -> running -> succeeded | failed.
+
+    `worker` is the runner instance running it; `seen_version` and `seen_generation` are the
+    name's active pointer when an `activate` job was submitted (0: no version was active);
+    `activation` is what landing did about activation (None without `activate`).
+    """
 
     __tablename__ = "jobs"
 
@@ -86,3 +108,26 @@ class JobRow(Base):
     finished_at: Mapped[datetime | None]
     heartbeat_at: Mapped[datetime | None]
     profile_id: Mapped[int | None] = mapped_column(ForeignKey("profiles.id"))
+    worker: Mapped[str | None] = mapped_column(String(128))
+    seen_version: Mapped[int | None]
+    seen_generation: Mapped[int | None]
+    activation: Mapped[str | None] = mapped_column(Text)
+
+
+def add_missing_columns(conn: Connection) -> list[str]:
+    """Add the columns a store created by an older detcal lacks (each nullable or with a
+    server default, so ADD COLUMN works on SQLite and Postgres); the `table.column`s added."""
+    added = []
+    existing = inspect(conn)
+    for table in Base.metadata.sorted_tables:
+        have = {c["name"] for c in existing.get_columns(table.name)}
+        for column in table.columns:
+            if column.name in have:
+                continue
+            ddl = f"ALTER TABLE {table.name} ADD COLUMN {column.name} " + str(
+                column.type.compile(conn.dialect))
+            if column.server_default is not None:
+                ddl += f" NOT NULL DEFAULT {column.server_default.arg.text}"  # type: ignore[attr-defined]
+            conn.execute(text(ddl))
+            added.append(f"{table.name}.{column.name}")
+    return added

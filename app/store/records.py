@@ -23,6 +23,11 @@ class NotFoundError(LookupError):
     """A profile, version or job that does not exist."""
 
 
+class JobLostError(RuntimeError):
+    """A job this worker no longer owns: re-queued (its worker was taken for dead) or
+    finished by someone else; its result must not land."""
+
+
 @dataclass(frozen=True)
 class ProfileRecord:
     """One stored profile version; `json` is the CalibrationProfile JSON text."""
@@ -63,6 +68,16 @@ class DumpRecord:
     created: bool
 
 
+@dataclass(frozen=True)
+class CleanReport:
+    """What a clean-up of the dumps directory removed (`skipped`: an upload held the lock)."""
+
+    partial: int = 0
+    dumps: int = 0
+    bytes: int = 0
+    skipped: bool = False
+
+
 class JobFields(BaseModel):
     """A fit job's public fields, defined once: what the store hands out and the API returns."""
 
@@ -80,6 +95,10 @@ class JobFields(BaseModel):
     created_at: datetime
     started_at: datetime | None
     finished_at: datetime | None
+    activation: str | None = Field(
+        None, description="Jobs with `activate`, once landed: `activated`, or `not activated: "
+                          "<why>` when the profile's active version was changed after the job "
+                          "was submitted (the new version then lands inactive); else null.")
 
 
 class JobRecord(JobFields):
@@ -89,6 +108,7 @@ class JobRecord(JobFields):
 
     profile_id: int | None
     profile_version: int | None
+    worker: str | None = None
 
     @classmethod
     def from_row(cls, row: Any, version: int | None) -> JobRecord:
@@ -97,5 +117,5 @@ class JobRecord(JobFields):
                    dump_sha256=row.dump_sha256, gt_sha256=row.gt_sha256,
                    activate=bool(row.activate), attempts=row.attempts,
                    created_at=aware(row.created_at), started_at=aware(row.started_at),
-                   finished_at=aware(row.finished_at), profile_id=row.profile_id,
-                   profile_version=version)
+                   finished_at=aware(row.finished_at), activation=row.activation,
+                   profile_id=row.profile_id, profile_version=version, worker=row.worker)

@@ -6,28 +6,52 @@ is one transaction. Writes that pick a version number or move an active pointer 
 profile name (`Store._serialize`): SQLite takes its one write lock up front, Postgres a
 transaction-scoped advisory lock on the name, so concurrent fits of one name get distinct
 versions without relying on retries.
+
+A fit job is owned by the worker that claimed it: only that worker's progress, failure or
+result counts (a re-queued job's late result is refused with JobLostError). A job submitted
+with `activate` remembers the active pointer it saw and, when it lands, moves the pointer
+only if nobody moved it since (compare-and-set in the landing transaction). Uploaded dumps
+and their clean-up: app/store/dumps.py; private file modes: app/store/files.py.
 """
 
 from __future__ import annotations
 
 import hashlib
 import json
-import os
-import tempfile
 import uuid
-from collections.abc import Iterator
+from collections.abc import Collection, Iterator
 from contextlib import contextmanager
 from datetime import datetime, timedelta
 from pathlib import Path
-from typing import Any, BinaryIO
+from typing import Any
 
-from sqlalchemy import Connection, create_engine, event, func, select, text, update
-from sqlalchemy.exc import IntegrityError
+from sqlalchemy import (
+    Connection,
+    String,
+    cast,
+    create_engine,
+    event,
+    func,
+    or_,
+    select,
+    text,
+    update,
+)
+from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
-from app.store.models import ActiveRow, Base, DumpRow, JobRow, ProfileRow, utcnow
+from app.store.dumps import DumpFiles
+from app.store.files import private_dir, private_sqlite
+from app.store.models import (
+    ActiveRow,
+    Base,
+    JobRow,
+    ProfileRow,
+    add_missing_columns,
+    utcnow,
+)
 from app.store.records import (
-    DumpRecord,
+    JobLostError,
     JobRecord,
     NameSummary,
     NotFoundError,
@@ -35,8 +59,6 @@ from app.store.records import (
     aware,
 )
 from app.store.urls import engine_url
-
-_CHUNK = 1 << 20
 
 
 def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
@@ -54,27 +76,36 @@ def _lock_key(scope: str, name: str) -> int:
     return int.from_bytes(digest[:8], "big", signed=True)
 
 
-class Store:
+class Store(DumpFiles):
     """Repository over the database at `url`, with uploaded files under `dumps_dir`."""
 
     def __init__(self, url: str, dumps_dir: Path) -> None:
         parsed = engine_url(url)
         self.url = parsed.render_as_string(hide_password=True)
-        self.dumps_dir = Path(dumps_dir)
-        self.dumps_dir.mkdir(parents=True, exist_ok=True)
+        self.dumps_dir = private_dir(Path(dumps_dir))
         self.backend = parsed.get_backend_name()
         is_sqlite = self.backend == "sqlite"
         if is_sqlite and parsed.database and parsed.database != ":memory:":
-            Path(parsed.database).parent.mkdir(parents=True, exist_ok=True)
+            database = Path(parsed.database)
+            if not database.parent.exists():
+                private_dir(database.parent)
+            private_sqlite(database)
         kwargs: dict[str, Any] = {"connect_args": {"check_same_thread": False}} if is_sqlite else {
             "pool_pre_ping": True}
         self.engine = create_engine(parsed, **kwargs)
         if is_sqlite:
             event.listen(self.engine, "connect", _sqlite_pragmas)
-        with self.engine.begin() as conn:
-            # Several server processes may start at once on one Postgres database.
-            self._serialize(conn, "schema", "create")
-            Base.metadata.create_all(conn)
+        for attempt in range(3):
+            try:
+                with self.engine.begin() as conn:
+                    # Several server processes may start at once on one Postgres database.
+                    self._serialize(conn, "schema", "create")
+                    Base.metadata.create_all(conn)
+                    add_missing_columns(conn)
+                break
+            except DBAPIError:  # SQLite: another process added the same column first
+                if attempt == 2:
+                    raise
         self._session = sessionmaker(self.engine, expire_on_commit=False)
 
     def _serialize(self, conn: Connection | Session, scope: str, name: str) -> None:
@@ -109,44 +140,6 @@ class Store:
         except Exception:  # noqa: BLE001 - readiness reports any failure as not ready
             return False
 
-    # -- dumps --------------------------------------------------------------------------
-    def put_dump(self, source: BinaryIO, kind: str) -> DumpRecord:
-        """Copy `source` to `dumps/<sha256>` (atomically, once) and record it."""
-        digest = hashlib.sha256()
-        size = 0
-        fd, tmp = tempfile.mkstemp(dir=self.dumps_dir, prefix=".upload-")
-        try:
-            with os.fdopen(fd, "wb") as out:
-                while chunk := source.read(_CHUNK):
-                    digest.update(chunk)
-                    size += len(chunk)
-                    out.write(chunk)
-            sha = digest.hexdigest()
-            final = self.dumps_dir / sha
-            if final.exists():
-                os.unlink(tmp)
-            else:
-                os.replace(tmp, final)
-        except BaseException:
-            if os.path.exists(tmp):
-                os.unlink(tmp)
-            raise
-        try:
-            with self._tx() as s:
-                created = s.get(DumpRow, sha) is None
-                if created:
-                    s.add(DumpRow(sha256=sha, kind=kind, size=size))
-        except IntegrityError:
-            created = False  # the same bytes were recorded concurrently
-        return DumpRecord(sha256=sha, kind=kind, size=size, created=created)
-
-    def dump_path(self, sha256: str) -> Path:
-        """Path of the stored upload with this digest."""
-        path = self.dumps_dir / sha256
-        if len(sha256) != 64 or not path.is_file():
-            raise NotFoundError(f"dump {sha256} is not stored")
-        return path
-
     # -- profiles -----------------------------------------------------------------------
     def add_profile(self, name: str, profile_json: str, *, dump_sha256: str | None = None,
                     activate: bool = False) -> ProfileRecord:
@@ -155,15 +148,18 @@ class Store:
             try:
                 with self._tx() as s:
                     return self._insert_version(s, name, profile_json, dump_sha256, None,
-                                                activate)
+                                                activate)[0]
             except IntegrityError:
                 if attempt == 4:
                     raise
         raise AssertionError("unreachable")
 
     def _insert_version(self, s: Session, name: str, profile_json: str,
-                        dump_sha256: str | None, job_id: str | None,
-                        activate: bool) -> ProfileRecord:
+                        dump_sha256: str | None, job_id: str | None, activate: bool,
+                        seen_generation: int | None = None) -> tuple[ProfileRecord, str | None]:
+        """Insert the next version of `name`; move the pointer to it when `activate` (and, if
+        `seen_generation` is given, only if the pointer is still that generation, 0 = none).
+        Returns the version and, when a requested activation was refused, why."""
         self._serialize(s, "profile", name)
         last = s.scalar(select(func.max(ProfileRow.version)).where(ProfileRow.name == name))
         row = ProfileRow(name=name, version=(last or 0) + 1, json=profile_json,
@@ -172,13 +168,16 @@ class Store:
         s.add(row)
         s.flush()
         active = s.get(ActiveRow, name)
-        if active is None:
+        refused = None
+        if active is None:  # the first version of a name is active whatever was asked
             s.add(ActiveRow(name=name, profile_id=row.id, version=row.version))
+        elif activate and seen_generation is not None and active.generation != seen_generation:
+            refused = f"{name}@{active.version} was activated after this job was submitted"
         elif activate:
-            active.profile_id, active.version, active.activated_at = row.id, row.version, utcnow()
+            _move(active, row)
         s.flush()
-        return _profile(row, active_version=row.version if active is None or activate
-                        else active.version)
+        landed_active = active is None or (activate and refused is None)
+        return _profile(row, row.version if landed_active else active.version), refused
 
     def names(self) -> list[NameSummary]:
         """Every profile name with its active version and version count."""
@@ -243,7 +242,7 @@ class Store:
             if active is None:
                 s.add(ActiveRow(name=name, profile_id=row.id, version=version))
             else:
-                active.profile_id, active.version, active.activated_at = row.id, version, utcnow()
+                _move(active, row)
         return _profile(row, version)
 
     def count_profiles(self) -> int:
@@ -254,11 +253,16 @@ class Store:
     # -- jobs ---------------------------------------------------------------------------
     def create_job(self, name: str, options: dict[str, Any], dump_sha256: str,
                    gt_sha256: str | None = None, activate: bool = False) -> JobRecord:
-        """Queue a fit job of `name` on a stored dump."""
+        """Queue a fit job of `name` on a stored dump; with `activate`, note the active pointer
+        now (the job activates its version only if the pointer has not moved when it lands)."""
         row = JobRow(id=uuid.uuid4().hex, name=name, state="queued", progress=0.0,
                      options=json.dumps(options, sort_keys=True), dump_sha256=dump_sha256,
                      gt_sha256=gt_sha256, activate=activate, attempts=0, created_at=utcnow())
         with self._tx() as s:
+            if activate:
+                seen = s.execute(select(ActiveRow.version, ActiveRow.generation)
+                                 .where(ActiveRow.name == name)).first()
+                row.seen_version, row.seen_generation = tuple(seen) if seen else (0, 0)
             s.add(row)
         return JobRecord.from_row(row, None)
 
@@ -272,8 +276,9 @@ class Store:
                 ProfileRow.id == row.profile_id)) if row.profile_id else None
         return JobRecord.from_row(row, version)
 
-    def claim_job(self) -> JobRecord | None:
-        """Atomically move the oldest queued job to running and return it (None if none)."""
+    def claim_job(self, worker: str | None = None) -> JobRecord | None:
+        """Atomically move the oldest queued job to running, owned by `worker`, and return it
+        (None if none is queued)."""
         for _ in range(5):
             with self._tx() as s:
                 # Postgres: skip rows another worker is claiming; SQLite renders no FOR UPDATE.
@@ -285,60 +290,103 @@ class Store:
                 now = utcnow()
                 claimed = s.execute(
                     update(JobRow).where(JobRow.id == job_id, JobRow.state == "queued")
-                    .values(state="running", started_at=now, heartbeat_at=now,
+                    .values(state="running", started_at=now, heartbeat_at=now, worker=worker,
                             attempts=JobRow.attempts + 1, stage="starting")).rowcount
             if claimed == 1:
                 return self.get_job(job_id)
         return None
 
-    def update_job(self, job_id: str, progress: float, stage: str | None) -> None:
-        """Record progress of a running job (also its heartbeat)."""
+    def update_job(self, job_id: str, progress: float, stage: str | None,
+                   worker: str | None = None) -> bool:
+        """Record progress of a running job (also its heartbeat); False when the job is no
+        longer running (or, given `worker`, no longer that worker's)."""
         with self._tx() as s:
-            s.execute(update(JobRow).where(JobRow.id == job_id, JobRow.state == "running")
-                      .values(progress=max(0.0, min(1.0, progress)), stage=_text(stage, 200),
-                              heartbeat_at=utcnow()))
+            return s.execute(update(JobRow).where(JobRow.id == job_id, *_owned(worker))
+                             .values(progress=max(0.0, min(1.0, progress)),
+                                     stage=_text(stage, 200), heartbeat_at=utcnow())
+                             ).rowcount == 1
 
-    def fail_job(self, job_id: str, error: str) -> None:
-        """Mark a job failed with its error message; nothing else changes."""
+    def fail_job(self, job_id: str, error: str, worker: str | None = None) -> bool:
+        """Mark a queued or running job (given `worker`: a job that worker runs) failed with
+        its error message; nothing else changes. False when it was not such a job."""
+        owned = _owned(worker) if worker is not None else (
+            JobRow.state.in_(("queued", "running")),)
         with self._tx() as s:
-            s.execute(update(JobRow).where(JobRow.id == job_id)
-                      .values(state="failed", error=_text(error, 4000), finished_at=utcnow(),
-                              stage="failed"))
+            return s.execute(update(JobRow).where(JobRow.id == job_id, *owned)
+                             .values(state="failed", error=_text(error, 4000),
+                                     finished_at=utcnow(), stage="failed")).rowcount == 1
 
-    def complete_job(self, job_id: str, profile_json: str) -> ProfileRecord:
-        """In one transaction: write the job's profile version and mark the job succeeded."""
+    def complete_job(self, job_id: str, profile_json: str,
+                     worker: str | None = None) -> ProfileRecord:
+        """In one transaction: write the job's profile version, activate it if the job asked
+        to and the active pointer is still the one it saw, and mark the job succeeded.
+
+        Raises JobLostError, landing nothing, when the job is not running (or, given
+        `worker`, is run by another worker: it was re-queued meanwhile)."""
         for attempt in range(5):
             try:
                 with self._tx() as s:
                     job = s.get(JobRow, job_id)
                     if job is None:
                         raise NotFoundError(f"job {job_id!r} does not exist")
-                    record = self._insert_version(s, job.name, profile_json, job.dump_sha256,
-                                                  job.id, job.activate)
+                    # Lock first, then read the job again: nobody re-queues it under us.
+                    self._serialize(s, "profile", job.name)
+                    s.refresh(job, with_for_update=True)
+                    if job.state != "running" or (worker is not None and job.worker != worker):
+                        raise JobLostError(f"job {job_id} is {job.state} (worker "
+                                           f"{job.worker}), not running here; result dropped")
+                    record, refused = self._insert_version(
+                        s, job.name, profile_json, job.dump_sha256, job.id, job.activate,
+                        job.seen_generation)
                     job.state, job.progress, job.stage = "succeeded", 1.0, "done"
                     job.finished_at, job.profile_id = utcnow(), record.id
+                    if job.activate:
+                        job.activation = "activated" if refused is None else (
+                            f"not activated: {refused} (it saw "
+                            f"{_seen(job.name, job.seen_version)}); {record.ref} landed "
+                            f"inactive, activate it to serve it")
                     return record
             except IntegrityError:
                 if attempt == 4:
                     raise
         raise AssertionError("unreachable")
 
-    def requeue_stale(self, older_than: timedelta, max_attempts: int = 3) -> int:
-        """Re-queue running jobs whose heartbeat is older than `older_than` (worker died)."""
-        cutoff = utcnow() - older_than
+    def running_workers(self) -> set[str]:
+        """The workers that have running jobs (None for jobs claimed without a worker id)."""
+        with self._session() as s:
+            return set(s.scalars(select(JobRow.worker).distinct()
+                                 .where(JobRow.state == "running", JobRow.worker.is_not(None))))
+
+    def requeue_stale(self, older_than: timedelta | None, max_attempts: int = 3,
+                      dead_workers: Collection[str] = (),
+                      why: str = "its worker process died") -> int:
+        """Re-queue running jobs whose heartbeat is older than `older_than`, or whose worker is
+        in `dead_workers` (known gone, `why`: no need to wait); a job already tried
+        `max_attempts` times fails instead. How many jobs were re-queued or failed.
+
+        Each change is one UPDATE whose WHERE checks the job is still running, so a job that
+        lands meanwhile is never re-queued."""
+        cases = []
+        if dead_workers:
+            cases.append((JobRow.worker.in_(sorted(dead_workers)), why))
+        if older_than is not None:
+            cutoff = utcnow() - older_than
+            cases.append((or_(JobRow.heartbeat_at.is_(None), JobRow.heartbeat_at < cutoff),
+                          f"no heartbeat for {older_than.total_seconds():g} s"))
+        n = 0
         with self._tx() as s:
-            rows = s.scalars(select(JobRow).where(JobRow.state == "running")).all()
-            n = 0
-            for row in rows:
-                beat = aware(row.heartbeat_at)
-                if beat is not None and beat >= cutoff:
-                    continue
-                if row.attempts >= max_attempts:
-                    row.state, row.finished_at = "failed", utcnow()
-                    row.error = f"interrupted {row.attempts} times (worker stopped)"
-                else:
-                    row.state, row.stage = "queued", "re-queued after an interrupted run"
-                n += 1
+            for condition, reason in cases:
+                stale = (JobRow.state == "running", condition)
+                if s.scalar(select(JobRow.id).where(*stale).limit(1)) is None:
+                    continue                        # the usual case: no write at all
+                n += s.execute(update(JobRow).where(*stale, JobRow.attempts >= max_attempts)
+                               .values(state="failed", stage="failed", worker=None,
+                                       finished_at=utcnow(),
+                                       error="interrupted " + cast(JobRow.attempts, String)
+                                       + f" times (worker stopped: {reason})")).rowcount
+                n += s.execute(update(JobRow).where(*stale)
+                               .values(state="queued", worker=None,
+                                       stage=f"re-queued: interrupted ({reason})")).rowcount
         return n
 
     def job_counts(self) -> dict[str, int]:
@@ -355,6 +403,22 @@ class Store:
             versions = dict(s.execute(select(ProfileRow.id, ProfileRow.version)
                                       .where(ProfileRow.id.in_(ids))).all()) if ids else {}
         return [JobRecord.from_row(r, versions.get(r.profile_id)) for r in rows]
+
+
+def _owned(worker: str | None) -> tuple[Any, ...]:
+    """WHERE terms of a job that is running (and, given `worker`, run by that worker)."""
+    running = JobRow.state == "running"
+    return (running,) if worker is None else (running, JobRow.worker == worker)
+
+
+def _move(active: ActiveRow, row: ProfileRow) -> None:
+    """Point `active` at `row` (a new generation, even if it is the version already active)."""
+    active.profile_id, active.version, active.activated_at = row.id, row.version, utcnow()
+    active.generation = (active.generation or 0) + 1
+
+
+def _seen(name: str, version: int | None) -> str:
+    return f"{name}@{version}" if version else "no active version"
 
 
 def _text(value: str | None, limit: int) -> str | None:

@@ -17,7 +17,7 @@ import pytest
 from sqlalchemy import text
 from sqlalchemy.exc import DBAPIError
 
-from app.store import NotFoundError, Store
+from app.store import JobLostError, NotFoundError, Store
 from tests.app import pg
 
 
@@ -247,3 +247,126 @@ def test_data_survives_reopening(url: str, tmp_path: Path) -> None:
     again = Store(url, tmp_path / "dumps")
     assert again.active_version("lidar") == 2 and again.count_profiles() == 2
     again.close()
+
+
+# -- compare-and-set activation of fit jobs ---------------------------------------------------
+def _land(store: Store, job_id: str, text: str = '{"fit": 1}'):
+    assert store.claim_job("w") is not None
+    return store.complete_job(job_id, text, "w")
+
+
+def test_a_rollback_while_a_fit_runs_is_kept(store: Store) -> None:
+    """Issue 11: activate an older version while an `activate` fit runs; the fit lands its
+    version inactive and says why."""
+    store.add_profile("lidar", "{}")
+    store.add_profile("lidar", "{}", activate=True)
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    job = store.create_job("lidar", {}, sha, activate=True)        # sees lidar@2
+    store.activate("lidar", 1)                                      # the rollback
+    record = _land(store, job.id)
+    assert record.version == 3 and not record.active
+    assert store.active_version("lidar") == 1
+    done = store.get_job(job.id)
+    assert done.state == "succeeded" and done.profile_version == 3
+    assert done.activation == ("not activated: lidar@1 was activated after this job was "
+                               "submitted (it saw lidar@2); lidar@3 landed inactive, "
+                               "activate it to serve it")
+
+
+def test_activating_the_same_version_again_also_counts_as_a_move(store: Store) -> None:
+    store.add_profile("lidar", "{}")
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    job = store.create_job("lidar", {}, sha, activate=True)
+    store.activate("lidar", 1)              # re-affirms lidar@1 after the fit was submitted
+    assert not _land(store, job.id).active
+    assert store.active_version("lidar") == 1
+
+
+def test_an_unmoved_pointer_is_moved_by_the_fit(store: Store) -> None:
+    store.add_profile("lidar", "{}")
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    job = store.create_job("lidar", {}, sha, activate=True)
+    store.add_profile("lidar", "{}")        # a new inactive version does not move the pointer
+    assert _land(store, job.id).active and store.active_version("lidar") == 3
+    assert store.get_job(job.id).activation == "activated"
+    plain = store.create_job("lidar", {}, sha)
+    assert not _land(store, plain.id).active and store.get_job(plain.id).activation is None
+
+
+def test_a_first_version_landed_meanwhile_wins(store: Store) -> None:
+    """Two fits of a new name, both submitted with `activate`: the first to land is active
+    (first version of a name), the second saw no active version and lands inactive."""
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    a = store.create_job("lidar", {}, sha, activate=True)
+    b = store.create_job("lidar", {}, sha, activate=True)
+    assert _land(store, a.id).active
+    assert not _land(store, b.id).active
+    assert store.active_version("lidar") == 1
+    assert store.get_job(b.id).activation.startswith(
+        "not activated: lidar@1 was activated after this job was submitted (it saw no active")
+
+
+def test_concurrent_landings_and_rollbacks_keep_one_pointer(store: Store) -> None:
+    """Fits landing while versions are activated: each fit activates only if nothing moved the
+    pointer between its submission and its landing; one active version at the end."""
+    store.add_profile("lidar", "{}")
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    jobs = [store.create_job("lidar", {"i": i}, sha, activate=True).id for i in range(4)]
+    for _ in jobs:
+        assert store.claim_job("w") is not None
+
+    def work(i: int) -> None:
+        if i < 4:
+            store.complete_job(jobs[i], json.dumps({"i": i}), "w")
+        else:
+            store.activate("lidar", 1)
+
+    assert not run_threads(work, 6)
+    outcomes = [store.get_job(j).activation for j in jobs]
+    assert sum(o == "activated" for o in outcomes) <= 1      # all saw generation 1
+    assert sum(v.active for v in store.versions("lidar")) == 1
+
+
+# -- job ownership and re-queueing ------------------------------------------------------------
+def test_a_requeued_jobs_late_result_does_not_land(store: Store) -> None:
+    store.add_profile("lidar", "{}")
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    job = store.create_job("lidar", {}, sha, activate=True)
+    assert store.claim_job("dead").worker == "dead"
+    assert store.requeue_stale(None, dead_workers={"dead"}) == 1
+    requeued = store.get_job(job.id)
+    assert requeued.state == "queued" and requeued.worker is None
+    assert "its worker process died" in (requeued.stage or "")
+    assert not store.update_job(job.id, 0.5, "late", "dead")
+    assert not store.fail_job(job.id, "late", "dead")
+    with pytest.raises(JobLostError):
+        store.complete_job(job.id, '{"late": 1}', "dead")
+    assert store.claim_job("alive").attempts == 2
+    with pytest.raises(JobLostError):
+        store.complete_job(job.id, '{"late": 1}', "dead")
+    assert [v.version for v in store.versions("lidar")] == [1]
+    assert store.complete_job(job.id, '{"t": 1}', "alive").version == 2
+
+
+def test_requeue_leaves_live_workers_and_landed_jobs_alone(store: Store) -> None:
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    live = store.create_job("lidar", {}, sha)
+    done = store.create_job("lidar", {}, sha)
+    store.claim_job("live")
+    store.claim_job("dead")
+    store.complete_job(done.id, "{}", "dead")
+    assert store.running_workers() == {"live"}
+    assert store.requeue_stale(timedelta(minutes=5), dead_workers={"dead", "other"}) == 0
+    assert store.get_job(live.id).state == "running"
+    assert store.get_job(done.id).state == "succeeded"
+
+
+def test_a_job_killed_three_times_fails(store: Store) -> None:
+    sha = store.put_dump(io.BytesIO(b"d"), "npz").sha256
+    job = store.create_job("lidar", {}, sha)
+    for _ in range(3):
+        store.claim_job("w")
+        store.requeue_stale(None, dead_workers={"w"})
+    final = store.get_job(job.id)
+    assert final.state == "failed" and final.error == (
+        "interrupted 3 times (worker stopped: its worker process died)")

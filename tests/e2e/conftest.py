@@ -150,3 +150,26 @@ def admin() -> dict[str, str]:
 def wait():
     """`wait(http, job_id)`: poll a fit job until it finishes."""
     return wait_job
+
+
+@pytest.fixture
+def own_server(tmp_path: Path) -> Iterator[Server]:
+    """A server of this test alone on a fresh data directory (one it may kill and restart)."""
+    srv = Server(tmp_path / "data")
+    srv.start()
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+@pytest.fixture(scope="session")
+def large_dump_npz(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    """A synthetic dump large enough that its fit runs for a few tenths of a second (400
+    frames, ~8 MB): long enough to act while a job runs."""
+    from calibrators.io import save_dump
+    from calibrators.synthetic import synthetic_dump
+
+    path = tmp_path_factory.mktemp("dump") / "large.npz"
+    save_dump(path, synthetic_dump(n_frames=400, seed=2))
+    return path.read_bytes()
