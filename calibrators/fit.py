@@ -54,6 +54,7 @@ from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibrationProfile, make_provenance
 from calibrators.summary import summarize
 from calibrators.summary_types import ProfileReport
+from calibrators.vocab import COV_SOURCES
 
 Progress = Callable[[str, float], None]
 
@@ -123,8 +124,13 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
     region = fit_region_stage(
         calib, None if calib is None else apply_profile(calib[0], profile).covariances, dims,
         opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges)
-    profile = _versioned(replace(profile, regions=None if region is None else {
-        "method": region.method, "conformal": region.conformal}))
+    profile = replace(profile, regions=None if region is None else {
+        "method": region.method, "conformal": region.conformal})
+    if opts.other_sources:   # serve whatever covariance evidence a request carries
+        report_progress("other sources", 0.55)
+        others = _other_sources(profile, fit_part, matched, train, calib, opts, conformal)
+        profile = replace(profile, sources=others or None)
+    profile = _versioned(profile)
     selection = {"score": {"chosen": scores.method, "candidates": scores.candidates},
                  "covariance": {"chosen": cov.method, "candidates": cov.candidates},
                  "regions": None if region is None else {
@@ -185,11 +191,44 @@ def _calibration_split(fit_part: Dump, matched: MatchResult, opts: FitOptions
                                                                           opts.threshold))
 
 
+def _other_sources(profile: CalibrationProfile, fit_part: Dump, matched: MatchResult,
+                   train: tuple[Dump, MatchResult], calib: tuple[Dump, MatchResult] | None,
+                   opts: FitOptions, conformal: bool) -> dict[str, dict]:
+    """The covariance and region stages for every covariance source the dump allows besides
+    the profile's own (`CalibrationProfile.sources`), fit exactly like the primary one."""
+    out = {}
+    for source in COV_SOURCES:
+        if source == profile.cov_source:
+            continue
+        try:
+            resolve_cov_source(fit_part, source, opts.dims)
+        except OptionError:
+            continue                      # the dump cannot provide this source
+        cov = fit_covariance_stage(train if conformal else (fit_part, matched), train, calib,
+                                   opts.dims, source, opts.cov_method, opts.min_samples)
+        stage = {"depth_k": cov.depth_k, "pooled_k": cov.pooled_k,
+                 "fallback_classes": list(cov.fallback_classes),
+                 "covariance_scaling": {"method": cov.method, "scale": cov.scale,
+                                        "pooled_scale": cov.pooled_scale}}
+        as_primary = replace(profile, cov_source=source, depth_k=cov.depth_k,
+                             pooled_k=cov.pooled_k, fallback_classes=cov.fallback_classes,
+                             covariance_scaling=stage["covariance_scaling"], regions=None,
+                             sources=None)
+        region = fit_region_stage(
+            calib, None if calib is None else apply_profile(calib[0], as_primary).covariances,
+            opts.dims, opts.region_method if conformal else "gaussian", opts.min_group,
+            opts.distance_edges)
+        stage["regions"] = None if region is None else {"method": region.method,
+                                                         "conformal": region.conformal}
+        out[source] = stage
+    return out
+
+
 def _versioned(profile: CalibrationProfile) -> CalibrationProfile:
     """The profile as version 1 when its stages are the thesis methods (temperature, depth,
     gaussian): older readers load it and it serves exactly as version 1."""
     if (profile.score_method, profile.cov_method, profile.region_method) == (
-            "temperature", "depth", "gaussian"):
+            "temperature", "depth", "gaussian") and profile.sources is None:
         return replace(profile, score_calibration=None, covariance_scaling=None, regions=None,
                        schema_version=1)
     return profile

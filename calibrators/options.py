@@ -67,7 +67,8 @@ class FitOptions:
     positives, else gaussian). calibration: fraction of the fit frames in [0, 1) kept apart for
     those choices and the conformal radii (0: none; `auto` then means the thesis methods).
     min_group: calibration TPs a class × distance group needs for its own conformal radius.
-    distance_edges: inner edges (m) of the conformal distance bins.
+    distance_edges: inner edges (m) of the conformal distance bins. other_sources: also fit
+    the covariance and region stages for the other covariance sources the dump allows.
     """
 
     threshold: float = _opt(2.0, "matching distance in m", float)
@@ -95,6 +96,9 @@ class FitOptions:
                           "conformal radius", int)
     distance_edges: tuple[float, ...] = _opt((15.0, 30.0), "inner edges of the conformal "
                                              "distance bins in m, comma separated", str)
+    other_sources: bool = _opt(True, "also fit the covariance and region stages for every "
+                               "other covariance source the dump allows, so a request is "
+                               "calibrated with whatever it carries", bool)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -134,6 +138,9 @@ class FitOptions:
                                              f"[0, 1), got {self.calibration}")
         set_(self, "min_group", _integer("min_group", self.min_group, minimum=1))
         set_(self, "distance_edges", _edges(self.distance_edges))
+        if not isinstance(self.other_sources, bool):
+            raise OptionError("other_sources", f"other_sources must be True or False, got "
+                                               f"{self.other_sources!r}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (dims as a list); `FitOptions.from_dict` reads it back."""

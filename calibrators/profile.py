@@ -51,6 +51,9 @@ class CalibrationProfile:
     score_calibration : v2, {"method", "params"} or None (the global temperature).
     covariance_scaling : v2, {"method", "scale": {class: s}, "pooled_scale"} or None (depth).
     regions : v2, {"method", "conformal"} or None (Gaussian χ²₂ radii).
+    sources : v2, the same covariance and region stages (with their `depth_k`, `pooled_k`,
+        `fallback_classes`) for the other covariance sources the val dump allowed, so a
+        request is calibrated with whatever it carries (`{source: {...}}`), or None.
     """
 
     classes: tuple[str, ...]
@@ -70,6 +73,7 @@ class CalibrationProfile:
     score_calibration: dict | None = None
     covariance_scaling: dict | None = None
     regions: dict | None = None
+    sources: dict | None = None
     schema_version: int = SCHEMA_VERSION
 
     def __post_init__(self) -> None:
@@ -110,8 +114,10 @@ class CalibrationProfile:
                 setattr(self, key, pf.jsonable(key, getattr(self, key)))
         # The parsed stages (validated here once, used by calibrate).
         self._score = pf.score_stage(self.score_calibration)
-        self._covariance = pf.covariance_stage(self.covariance_scaling, self.classes)
-        self._regions = pf.region_stage(self.regions, len(self.classes))
+        primary = pf.source_stage(self.cov_source, self.depth_k, self.pooled_k,
+                                  self.covariance_scaling, self.regions, self.classes)
+        self._sources = {self.cov_source: primary,
+                         **pf.other_sources(self.sources, self.cov_source, self.classes)}
 
     @property
     def score_method(self) -> str:
@@ -121,12 +127,17 @@ class CalibrationProfile:
     @property
     def cov_method(self) -> str:
         """The served covariance scaling: `depth` (Σ + k·d·I) or `shrinkage` (s·Σ + k·d·I)."""
-        return self._covariance[0]
+        return self._sources[self.cov_source].cov_method
+
+    @property
+    def served_sources(self) -> tuple[str, ...]:
+        """The covariance sources a request may carry: the profile's own `cov_source` first."""
+        return tuple(self._sources)
 
     @property
     def region_method(self) -> str:
         """The served regions: `gaussian` (χ²₂ radii) or `conformal`."""
-        return self._regions[0]
+        return self._sources[self.cov_source].region_method
 
     # -- serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -187,7 +198,7 @@ class CalibrationProfile:
                "created_at": self.provenance.get("created_at")}
         if self.schema_version > 1:
             out.update(score_method=self.score_method, cov_method=self.cov_method,
-                       region_method=self.region_method)
+                       region_method=self.region_method, sources=list(self.served_sources))
         return out
 
     # -- application ---------------------------------------------------------------------

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -12,7 +13,7 @@ import numpy as np
 from calibrators.conformal import ConformalRegions
 from calibrators.exceptions import FieldError
 from calibrators.score_calibration import score_calibrator_from_dict
-from calibrators.vocab import COV_METHODS, REGION_METHODS, SCORE_METHODS
+from calibrators.vocab import COV_METHODS, COV_SOURCES, REGION_METHODS, SCORE_METHODS
 
 #: Profile JSON versions this detcal reads: 1 (temperature + depth k, Gaussian ellipses) and
 #: 2 (adds the score, covariance-scaling and region stages). A v1 profile serves as before.
@@ -20,7 +21,7 @@ SCHEMA_VERSIONS = (1, 2)
 SCHEMA_VERSION = 2
 MATCHING_RULES = ("center_distance",)
 #: The keys a version-2 profile adds.
-STAGE_KEYS = ("score_calibration", "covariance_scaling", "regions")
+STAGE_KEYS = ("score_calibration", "covariance_scaling", "regions", "sources")
 
 JSON_TYPES: dict[str, tuple[type, ...]] = {
     "schema_version": (int,), "classes": (list,), "score_mode": (str,),
@@ -29,7 +30,7 @@ JSON_TYPES: dict[str, tuple[type, ...]] = {
     "pooled_k": (int, float), "fallback_classes": (list,), "matching": (dict,),
     "min_score": (int, float, type(None)), "report": (dict,), "provenance": (dict,),
     "score_calibration": (dict, type(None)), "covariance_scaling": (dict, type(None)),
-    "regions": (dict, type(None)),
+    "regions": (dict, type(None)), "sources": (dict, type(None)),
 }
 
 
@@ -171,3 +172,51 @@ def region_stage(value: Any, n_classes: int) -> tuple[str, ConformalRegions | No
     if regions.classes_ != list(range(n_classes)):
         raise ValueError("regions.conformal must serve the profile's class indices")
     return method, regions
+
+
+@dataclass(frozen=True)
+class SourceStage:
+    """How `Σ'` and its regions are served for detections whose raw Σ comes from `source`
+    (`given` covariances, `layers` spread, or `none`): k and s per class, the methods, the
+    conformal radii (None: Gaussian)."""
+
+    source: str
+    depth_k: dict[str, float]
+    pooled_k: float
+    cov_method: str
+    scale: dict[str, float]
+    pooled_scale: float
+    region_method: str
+    conformal: ConformalRegions | None
+
+
+def source_stage(source: str, depth_k: Any, pooled_k: Any, covariance_scaling: Any,
+                 regions: Any, classes: tuple[str, ...], where: str = "") -> SourceStage:
+    """A validated `SourceStage`; `where` prefixes the keys named in errors."""
+    cov_method, scale, pooled_scale = covariance_stage(covariance_scaling, classes)
+    region_method, conformal = region_stage(regions, len(classes))
+    return SourceStage(source, class_numbers(f"{where}depth_k", depth_k, classes),
+                       number(f"{where}pooled_k", pooled_k, nonnegative=True), cov_method,
+                       scale, pooled_scale, region_method, conformal)
+
+
+def other_sources(value: Any, primary: str, classes: tuple[str, ...]
+                  ) -> dict[str, SourceStage]:
+    """The stages of a v2 `sources` object: `{source: {depth_k, pooled_k, fallback_classes,
+    covariance_scaling, regions}}` for covariance sources other than the profile's own."""
+    if value is None:
+        return {}
+    out = {}
+    for source, stage in value.items():
+        if source not in COV_SOURCES or source == primary:
+            raise ValueError(f"sources has {source!r}: keys must be covariance sources "
+                             f"{list(COV_SOURCES)} other than cov_source {primary!r}")
+        if not isinstance(stage, dict):
+            raise ValueError(f"sources[{source!r}] must be an object")
+        where = f"sources[{source!r}]."
+        known(f"{where}fallback_classes",
+              names(f"{where}fallback_classes", stage.get("fallback_classes", [])), classes)
+        out[source] = source_stage(source, stage.get("depth_k"), stage.get("pooled_k"),
+                                   stage.get("covariance_scaling"), stage.get("regions"),
+                                   classes, where)
+    return out

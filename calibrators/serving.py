@@ -41,8 +41,9 @@ from calibrators.modulation import modulate_logits
 from calibrators.scores import class_probabilities, predict
 
 if TYPE_CHECKING:
-    from calibrators.conformal import ConformalGroup
+    from calibrators.conformal import ConformalGroup, ConformalRegions
     from calibrators.profile import CalibrationProfile
+    from calibrators.profile_fields import SourceStage
 
 __all__ = ["CalibratedDetections", "calibrate_detections"]
 
@@ -59,7 +60,8 @@ class CalibratedDetections:
     `ellipse_confidence` (arrays [N]) or None; distances [N] m. regions: level -> ellipses
     [N] for each requested level; region_method: `gaussian` | `conformal` (None without x, y);
     region_groups: [N] the conformal group serving each detection, e.g. `car 15-30 m`
-    (None for gaussian); region_radii: level -> Mahalanobis radius [N] of each region.
+    (None for gaussian); region_radii: level -> Mahalanobis radius [N] of each region;
+    cov_source: the covariance source that served the call (`given`, `layers`, `none`).
     """
 
     labels: np.ndarray
@@ -73,6 +75,7 @@ class CalibratedDetections:
     region_method: str | None = None
     region_groups: list[str] | None = None
     region_radii: dict[float, np.ndarray] = field(default_factory=dict)
+    cov_source: str | None = None
 
     def __len__(self) -> int:
         return len(self.labels)
@@ -99,13 +102,13 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
     labels_, scores_, raw, class_scores = _class_evidence(profile, logits, scores, labels,
                                                           layer_logits, distances)
     check_length("boxes", box, len(labels_), "the class evidence")
-    cov = _scaled(profile, _base_covariance(profile, covariances, layer_boxes, n), distances,
-                  labels_)
+    stage, base = _base_covariance(profile, covariances, layer_boxes, n)
+    cov = _scaled(profile, stage, base, distances, labels_)
     wanted = None if levels is None else check_levels(levels)
     confidence = check_levels([ellipse_confidence], "ellipse_confidence")[0]
     served = [float(confidence)] + ([] if wanted is None else
                                     [float(q) for q in wanted if q != confidence])
-    regions, radii, method, groups = _regions(profile, cov, distances, labels_, served)
+    regions, radii, method, groups = _regions(profile, stage, cov, distances, labels_, served)
     out = CalibratedDetections(labels=labels_, scores=scores_, scores_raw=raw,
                                 class_scores=class_scores, covariances=cov,
                                 ellipses=regions.get(float(confidence)),
@@ -114,7 +117,8 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
                                 else {float(q): regions[float(q)] for q in wanted},
                                 region_method=method, region_groups=groups,
                                 region_radii={} if wanted is None or not radii
-                                else {float(q): radii[float(q)] for q in wanted})
+                                else {float(q): radii[float(q)] for q in wanted},
+                                cov_source=stage.source)
     _check_finite(out, covariances is not None)
     return out
 
@@ -204,47 +208,58 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
 
 
 def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None,
-                     layer_boxes: np.ndarray | None, n: int) -> np.ndarray:
-    """`[N, D, D]` Σ before scaling, from the profile's cov_source."""
+                     layer_boxes: np.ndarray | None, n: int) -> tuple[SourceStage, np.ndarray]:
+    """The stage serving this call and its `[N, D, D]` Σ before scaling: given `covariances`
+    if passed, else the spread of `layer_boxes` if passed and the profile serves it, else
+    none (Σ = 0) if the profile serves it; a FieldError names what the profile needs."""
     dim = len(profile.cov_dims)
-    source = profile.cov_source
-    if source != "given" and covariances is not None:
-        raise FieldError("covariances", f"covariances were given but the profile's "
-                                        f"cov_source is {source!r}: its k was fit "
-                                        f"without them")
-    if source == "given":
-        if covariances is None:
-            raise FieldError("covariances", f"covariances are required: the profile was fit "
-                                            f"on given covariances (cov_source 'given') over "
-                                            f"cov_dims {list(profile.cov_dims)}")
+    stages = profile._sources
+    if covariances is not None:
+        if "given" not in stages:
+            raise FieldError("covariances", f"covariances were given but the profile's "
+                                            f"cov_source is {profile.cov_source!r}: its k was "
+                                            f"fit without them{_takes(profile)}")
         cov = as_float_array("covariances", covariances, ndim=3)
         if cov.shape[1:] != (dim, dim):
             raise FieldError("covariances", f"covariances are {cov.shape[1]}x{cov.shape[2]} "
                                             f"but the profile's cov_dims "
                                             f"{list(profile.cov_dims)} need {dim}x{dim}")
         check_covariances("covariances", cov, n=n, dim=dim)
-        return cov
-    if source == "layers":
-        layers = _required("layer_boxes (the profile's cov_source is 'layers')", layer_boxes)
-        spread = layer_spread(layers, profile.cov_dims)
+        return stages["given"], cov
+    if layer_boxes is not None and "layers" in stages:
+        spread = layer_spread(layer_boxes, profile.cov_dims)
         check_length("layer_boxes", spread, n, "boxes")
-        return spread
-    return np.zeros((n, dim, dim))
+        return stages["layers"], spread
+    if "none" in stages:
+        return stages["none"], np.zeros((n, dim, dim))
+    if "layers" in stages:
+        raise FieldError("layer_boxes", f"layer_boxes (the profile's cov_source is 'layers') "
+                                        f"is required{_takes(profile)}")
+    raise FieldError("covariances", f"covariances are required: the profile was fit on given "
+                                    f"covariances (cov_source 'given') over cov_dims "
+                                    f"{list(profile.cov_dims)}")
 
 
-def _scaled(profile: CalibrationProfile, base: np.ndarray, distances: np.ndarray,
-            labels: np.ndarray) -> np.ndarray:
+def _takes(profile: CalibrationProfile) -> str:
+    """`; it takes ...` for a profile serving several covariance sources."""
+    if len(profile._sources) < 2:
+        return ""
+    words = {"given": "covariances", "layers": "layer_boxes", "none": "neither"}
+    return "; it takes " + " or ".join(words[s] for s in profile._sources)
+
+
+def _scaled(profile: CalibrationProfile, stage: SourceStage, base: np.ndarray,
+            distances: np.ndarray, labels: np.ndarray) -> np.ndarray:
     """Σ' = Σ + k·d·I, or s·Σ + k·d·I with a shrinkage stage (class of each detection)."""
-    k_table = np.array([profile.depth_k.get(c, profile.pooled_k) for c in profile.classes])
-    method, scale, pooled_scale = profile._covariance
-    if method == "shrinkage":
-        s_table = np.array([scale.get(c, pooled_scale) for c in profile.classes])
+    k_table = np.array([stage.depth_k.get(c, stage.pooled_k) for c in profile.classes])
+    if stage.cov_method == "shrinkage":
+        s_table = np.array([stage.scale.get(c, stage.pooled_scale) for c in profile.classes])
         base = base * s_table[labels][:, None, None]
     return add_depth_term(base, distances, k_table[labels])
 
 
-def _regions(profile: CalibrationProfile, cov: np.ndarray, distances: np.ndarray,
-             labels: np.ndarray, levels: list[float]
+def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
+             distances: np.ndarray, labels: np.ndarray, levels: list[float]
              ) -> tuple[dict[float, Ellipse], dict[float, np.ndarray], str | None,
                         list[str] | None]:
     """Ellipses of the x, y block of `cov [N, D, D]` at each level, their radii `[N]`, the
@@ -253,14 +268,15 @@ def _regions(profile: CalibrationProfile, cov: np.ndarray, distances: np.ndarray
         return {}, {}, None, None
     ix, iy = profile.cov_dims.index("x"), profile.cov_dims.index("y")
     block = cov[:, [ix, iy]][:, :, [ix, iy]]
-    method, conformal = profile._regions
+    method, conformal = stage.region_method, stage.conformal
     n = len(labels)
     if conformal is None:
         return ({float(q): ellipse(block, q) for q in levels},
                 {float(q): np.full(n, gaussian_radius(q)) for q in levels}, method, None)
     radii = conformal.radii(levels, labels, distances)
     index = conformal.group_index(labels, distances)
-    names = {int(g): _group_name(profile, conformal.groups_[g]) for g in np.unique(index)}
+    names = {int(g): _group_name(profile, conformal, conformal.groups_[g])
+             for g in np.unique(index)}
     bad = ~np.isfinite(radii)
     if bad.any():
         i, j = (int(v) for v in np.argwhere(bad)[0])
@@ -274,10 +290,11 @@ def _regions(profile: CalibrationProfile, cov: np.ndarray, distances: np.ndarray
             [names[g] for g in index.tolist()])
 
 
-def _group_name(profile: CalibrationProfile, group: ConformalGroup) -> str:
+def _group_name(profile: CalibrationProfile, conformal: ConformalRegions,
+                group: ConformalGroup) -> str:
     """`car 15-30 m`, `pooled classes 30+ m`, ... of a conformal group."""
     who = "pooled classes" if group.label is None else profile.classes[int(group.label)]
-    edges = profile._regions[1].edges_
+    edges = conformal.edges_
     lo, hi = edges[min(group.bins)], edges[max(group.bins) + 1]
     where = f"{lo:g}+ m" if not np.isfinite(hi) else f"{lo:g}-{hi:g} m"
     return f"{who} {where}"

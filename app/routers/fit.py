@@ -28,9 +28,9 @@ router = APIRouter(prefix="/v1", tags=["fit"])
 def fit(
     _: AdminDep, store: StoreDep, runner: RunnerDep, settings: SettingsDep,
     options: Annotated[FitForm, Form()],
-    dump: Annotated[UploadFile | None, File(description="Validation dump v1 (NPZ).")] = None,
-    results: Annotated[UploadFile | None, File(description="nuScenes results JSON.")] = None,
-    gt: Annotated[UploadFile | None, File(description="Ground truth JSON for `results`.")] = None,
+    dump: Annotated[UploadFile, File(description="Validation dump v1 (NPZ).")] = None,
+    results: Annotated[UploadFile, File(description="nuScenes results JSON.")] = None,
+    gt: Annotated[UploadFile, File(description="Ground truth JSON for `results`.")] = None,
     name: Annotated[ProfileName | None, Form(description="Profile name (default: the "
                                                          "configured default).")] = None,
     activate: Annotated[bool, Form(description="Activate the new version when it lands (the "

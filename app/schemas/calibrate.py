@@ -18,6 +18,10 @@ _BOX_TEXT = " ".join(BOX_FIELDS)
 #: The levels served when a request names none.
 DEFAULT_LEVELS = (0.95,)
 #: Docs of the `levels` field; the rule itself is `calibrators.levels.check_levels`.
+#: The schema of `levels` as the library checks it (`calibrators.levels.check_levels`):
+#: published in OpenAPI, validated by the library alone.
+LEVELS_SCHEMA = {"minItems": 1, "maxItems": MAX_LEVELS, "uniqueItems": True,
+                 "items": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1}}
 LEVELS_TEXT = (f"Coverage levels of the served `ellipses`: at most {MAX_LEVELS} distinct "
                f"numbers in (0, 1); a conformal profile serves a level only up to n/(n + 1) "
                f"of each group's n calibration points.")
@@ -128,7 +132,8 @@ class CalibrateRequest(BaseModel):
         None, description="`name` (its active version) or `name@version`; default: the "
                           "configured default name.", examples=["lidar"])
     ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
-    levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT)
+    levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT,
+                                json_schema_extra=LEVELS_SCHEMA)
     frames: list[FrameIn] = Field(min_length=1)
 
 
@@ -205,7 +210,8 @@ class DetectRequest(BaseModel):
     profile: str | None = None
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Keep raw scores >= this.")
     ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
-    levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT)
+    levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT,
+                                json_schema_extra=LEVELS_SCHEMA)
 
     @field_validator("points")
     @classmethod

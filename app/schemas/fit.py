@@ -14,9 +14,9 @@ from calibrators.options import FitOptions
 
 
 def _field(spec: Any) -> tuple[Any, Any]:
+    """A form field: its type and default. A nullable option (default None) is simply left
+    out of the form; a multipart form cannot carry a null, so the schema does not offer one."""
     kind: Any = Literal[spec.choices] if spec.choices else spec.type
-    if spec.nullable:
-        kind = kind | None
     return kind, Field(spec.default, description=spec.help)
 
 

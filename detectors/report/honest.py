@@ -25,7 +25,7 @@ SCORE_ROWS = {"class_temperature": "TS per class", "platt": "Platt per class",
               "platt_range": "Platt per class + range", "isotonic": "Isotonic per class",
               "histogram": "Histogram binning per class"}
 _THESIS = {"cov_source": "layers", "score_method": "temperature", "cov_method": "depth",
-           "region_method": "gaussian", "calibration": 0.0}
+           "region_method": "gaussian", "calibration": 0.0, "other_sources": False}
 
 
 @dataclass(frozen=True)
@@ -75,7 +75,7 @@ def honest_section(val: Dump, test: Dump, m: MatchResult, forward_ms: float,
     shrink = fit_profile(val, FitOptions(**{**_THESIS, "cov_method": "shrinkage"}))
     out.rows.append(profile_row("Shrinkage (TS + s·Σ + k·d·I)", test, shrink, forward_ms, True,
                                 m))
-    auto = fit_profile(val, cov_source="layers")
+    auto = fit_profile(val, cov_source="layers", other_sources=False)
     out.chosen = (auto.score_method, auto.cov_method, auto.region_method)
     out.default_row = profile_row("detcal default (" + " + ".join(out.chosen) + ")", test, auto,
                                   forward_ms, True, m)

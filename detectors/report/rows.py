@@ -160,7 +160,7 @@ def class_rows(dump: Dump, scores: np.ndarray, covariances: np.ndarray,
 def fit_profiles(val: Dump) -> Profiles:
     """Fit TS and TS+Mod (each with depth scaling on the layer spread) on `val`."""
     thesis = {"cov_source": "layers", "score_method": "temperature", "cov_method": "depth",
-              "region_method": "gaussian", "calibration": 0.0}
+              "region_method": "gaussian", "calibration": 0.0, "other_sources": False}
     ts = fit_profile(val, **thesis)
     ts_mod = fit_profile(val, modulation=True, **thesis)
     mod = CalibrationProfile(classes=val.classes, score_mode=val.score_mode, temperature=1.0,

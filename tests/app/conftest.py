@@ -26,14 +26,15 @@ def dump_given():
 
 @pytest.fixture(scope="session")
 def profile_json_given(dump_given) -> str:
-    """Profile JSON fit on `dump_given` with its given covariances."""
-    return fit_profile(dump_given, cov_source="given").to_json()
+    """Profile JSON fit on `dump_given` with its given covariances only (no other sources:
+    a request must carry covariances)."""
+    return fit_profile(dump_given, cov_source="given", other_sources=False).to_json()
 
 
 @pytest.fixture(scope="session")
 def profile_json_layers(dump_given) -> str:
-    """Profile JSON fit on `dump_given` with the spread across decoder layers."""
-    return fit_profile(dump_given, cov_source="layers").to_json()
+    """Profile JSON fit on `dump_given` with the spread across decoder layers only."""
+    return fit_profile(dump_given, cov_source="layers", other_sources=False).to_json()
 
 
 @pytest.fixture

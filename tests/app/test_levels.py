@@ -46,7 +46,8 @@ def conformal_json(dump_given) -> str:
 def thesis_json(dump_given) -> str:
     """A thesis-method fit (global T, Σ + k·d·I, Gaussian regions), written as version 1."""
     text = fit_profile(dump_given, cov_source="given", score_method="temperature",
-                       cov_method="depth", region_method="gaussian").to_json()
+                       cov_method="depth", region_method="gaussian",
+                       other_sources=False).to_json()
     assert json.loads(text)["schema_version"] == 1
     return text
 
@@ -165,7 +166,8 @@ def test_a_version_1_profile_serves_as_before_plus_gaussian_ellipses(client, dum
 def height_json(dump_given) -> str:
     """A version-1 profile over cov_dims ["z"] (Σ = 0, depth k only): no x, y ellipse."""
     doc = json.loads(fit_profile(dump_given, cov_source="none", score_method="temperature",
-                                 cov_method="depth", region_method="gaussian").to_json())
+                                 cov_method="depth", region_method="gaussian",
+                                 other_sources=False).to_json())
     doc["cov_dims"] = ["z"]
     return json.dumps(doc)
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from calibrators import (
+    CalibrationProfile,
     FitOptions,
     OptionError,
     apply_profile,
@@ -46,9 +47,10 @@ def test_auto_picks_the_best_held_out_candidate(auto_profile):
 def test_thesis_methods_give_a_version_1_profile_equal_to_the_plain_fit(val_test):
     val = val_test[0]
     thesis = fit_profile(val, cov_source="given", score_method="temperature",
-                         cov_method="depth", region_method="gaussian")
+                         cov_method="depth", region_method="gaussian", other_sources=False)
     plain = fit_profile(val, cov_source="given", score_method="temperature",
-                        cov_method="depth", region_method="gaussian", calibration=0.0)
+                        cov_method="depth", region_method="gaussian", calibration=0.0,
+                        other_sources=False)
     assert thesis.schema_version == 1 and thesis.score_calibration is None
     assert thesis.temperature == plain.temperature and thesis.depth_k == plain.depth_k
 
@@ -87,3 +89,22 @@ def test_explicit_methods_are_used_and_conformal_needs_a_calibration_part(val_te
     with pytest.raises(OptionError, match="calibration") as info:
         fit_profile(val, FitOptions(region_method="conformal", calibration=0.0))
     assert info.value.field == "calibration"
+
+
+def test_a_profile_serves_every_covariance_source_the_dump_allowed(val_test):
+    val, test = val_test
+    profile = fit_profile(val, cov_source="layers", region_method="conformal")
+    assert profile.served_sources == ("layers", "given", "none")
+    assert CalibrationProfile.from_json(profile.to_json()) == profile
+    base = {"logits": test.det_logits[:, -1], "boxes": test.final_boxes, "levels": [0.9]}
+    m = match_dump(test)
+    for extra, source in (({"covariances": test.det_cov}, "given"),
+                          ({"layer_boxes": test.det_boxes}, "layers"), ({}, "none")):
+        out = profile.calibrate(**base, **extra)
+        assert out.cov_source == source and out.region_method == "conformal"
+        md = xy_mahalanobis(tp_residuals(test, m), out.covariances[m.tp], ("x", "y"))
+        covered = float((md <= out.region_radii[0.9][m.tp]).mean())
+        assert 0.86 <= covered <= 0.94, (source, covered)   # each source calibrated on its own
+    only = fit_profile(val, cov_source="layers", other_sources=False)
+    with pytest.raises(ValueError, match="layer_boxes .* is required"):
+        only.calibrate(logits=test.det_logits[:, -1], boxes=test.final_boxes)
