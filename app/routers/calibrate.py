@@ -11,7 +11,13 @@ from app.body import body_doc, json_body, json_response
 from app.calibration import calibrate_frames
 from app.deps import CacheDep, MetricsDep, SettingsDep
 from app.nuscenes_results import calibrate_results
-from app.schemas.calibrate import DEFAULT_LEVELS, LEVELS_TEXT, CalibrateRequest, CalibrateResponse
+from app.schemas.calibrate import (
+    DEFAULT_LEVELS,
+    LEVELS_SCHEMA,
+    LEVELS_TEXT,
+    CalibrateRequest,
+    CalibrateResponse,
+)
 from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.nuscenes import NuScenesResults
 
@@ -47,6 +53,7 @@ def calibrate_nuscenes(
                       ] = None,
     ellipse_confidence: Annotated[float, Query(gt=0.0, lt=1.0)] = 0.95,
     levels: Annotated[list[float] | None, Query(
+        json_schema_extra=LEVELS_SCHEMA,
         description=f"{LEVELS_TEXT} Repeat it: `?levels=0.5&levels=0.9`; default "
                     f"{list(DEFAULT_LEVELS)}.")] = None,
 ) -> Response:
