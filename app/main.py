@@ -4,6 +4,7 @@ loads the active profiles and starts the fit-job runner."""
 from __future__ import annotations
 
 import logging
+import sys
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
@@ -31,12 +32,19 @@ detections into calibrated scores, covariances and uncertainty ellipses.
 Admin endpoints need `Authorization: Bearer <DETCAL_ADMIN_TOKEN>`."""
 
 
+#: The interpreter's thread switch interval while serving (default 5 ms).
+SWITCH_INTERVAL_S = 0.001
+
+
 def create_app(settings: Settings | None = None) -> FastAPI:
     """A new app bound to `settings` (default: read from the environment)."""
     settings = settings or get_settings()
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        # Worker threads calibrating a large request hold the GIL in long stretches; a
+        # shorter switch interval lets the event loop answer /healthz in between.
+        sys.setswitchinterval(SWITCH_INTERVAL_S)
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         store = Store(settings.sqlalchemy_url, settings.dumps_dir)
         cache = ProfileCache(store)

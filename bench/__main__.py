@@ -7,6 +7,7 @@ BENCHMARKS = (
     "bench.bench_match",
     "bench.bench_detectors",
     "bench.bench_service",
+    "bench.bench_health",
 )
 
 if __name__ == "__main__":

@@ -12,8 +12,10 @@ router = APIRouter(tags=["health"])
 
 
 @router.get("/healthz")
-def healthz() -> Health:
+async def healthz() -> Health:
     """The process is up and serving HTTP."""
+    # async: answered on the event loop itself, with no hand-off to a worker thread that
+    # would queue behind the threads calibrating large requests.
     return Health()
 
 

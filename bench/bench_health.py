@@ -1,0 +1,138 @@
+"""/healthz latency and server RSS while the largest allowed calibrate requests are served.
+
+    .venv/bin/python -m bench.bench_health [--seconds 20] [--detections 20000]
+
+A real `detcal serve` process (one worker) receives back-to-back POST /v1/calibrate requests
+of `--detections` detections (the default `DETCAL_MAX_DETECTIONS`, as large as the request
+limits allow) from two clients, while a third polls GET /healthz every 20 ms. The reference
+is the same /healthz poll with the server idle, measured first in the same run. Prints the
+health latency percentiles (idle and under load, and their ratio), the calibrate latency and
+the server's peak RSS increase over idle; writes the `health` section of docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+
+from bench.bench_service import ROOT, _payload, _port, _wait
+
+
+def _rss_mb(pid: int) -> float:
+    """Resident set size of `pid` in MiB (Linux /proc)."""
+    with open(f"/proc/{pid}/status") as fh:
+        for line in fh:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 1024.0
+    return float("nan")
+
+
+def _poll_health(url: str, stop: threading.Event, out: list[float]) -> None:
+    with httpx.Client(timeout=30.0) as client:
+        while not stop.is_set():
+            t0 = time.perf_counter()
+            client.get(url).raise_for_status()
+            out.append((time.perf_counter() - t0) * 1000.0)
+            stop.wait(0.02)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the server idle, then under load; print and record the figures."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--detections", type=int, default=20_000)
+    args = ap.parse_args(argv)
+
+    from app.settings import Settings
+    from app.store import Store
+
+    payload, profile_json = _payload(args.detections)
+    body = json.dumps(payload, separators=(",", ":")).encode()
+    with tempfile.TemporaryDirectory() as tmp:
+        settings = Settings(data_dir=Path(tmp) / "data")
+        store = Store(settings.sqlalchemy_url, settings.dumps_dir)
+        store.add_profile("lidar", profile_json)
+        store.close()
+        port = _port()
+        env = {**os.environ, "DETCAL_ADMIN_TOKEN": "bench-health-token",
+               "DETCAL_MAX_REQUEST_BYTES": str(max(len(body) + 1024, 8 * 2**20))}
+        detcal = ROOT / ".venv" / "bin" / "detcal"
+        cmd = [str(detcal)] if detcal.exists() else [sys.executable, "-m", "app.cli"]
+        proc = subprocess.Popen([*cmd, "serve", "--port", str(port), "--data-dir",
+                                 str(settings.data_dir), "--log-level", "warning"],
+                                cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+        base = f"http://127.0.0.1:{port}"
+        try:
+            _wait(f"{base}/healthz", proc)
+            idle, loaded, calib = [], [], []
+            stop = threading.Event()
+            poller = threading.Thread(target=_poll_health, args=(f"{base}/healthz", stop, idle))
+            poller.start()
+            time.sleep(min(5.0, args.seconds / 4))
+            stop.set()
+            poller.join()
+            rss_idle = _rss_mb(proc.pid)
+            rss_peak = rss_idle
+            stop = threading.Event()
+            poller = threading.Thread(target=_poll_health,
+                                      args=(f"{base}/healthz", stop, loaded))
+
+            def load() -> None:
+                with httpx.Client(timeout=120.0) as client:
+                    while not stop.is_set():
+                        t0 = time.perf_counter()
+                        r = client.post(f"{base}/v1/calibrate", content=body,
+                                        headers={"content-type": "application/json"})
+                        r.raise_for_status()
+                        calib.append((time.perf_counter() - t0) * 1000.0)
+
+            workers = [threading.Thread(target=load) for _ in range(2)]
+            poller.start()
+            for w in workers:
+                w.start()
+            deadline = time.monotonic() + args.seconds
+            while time.monotonic() < deadline:
+                rss_peak = max(rss_peak, _rss_mb(proc.pid))
+                time.sleep(0.05)
+            stop.set()
+            for t in (poller, *workers):
+                t.join()
+        finally:
+            proc.terminate()
+            proc.wait(10)
+
+    p = {name: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
+         for name, v in (("idle", idle), ("load", loaded))}
+    table = (
+        f"GET /healthz polled every 20 ms while two clients send back-to-back POST "
+        f"/v1/calibrate requests of {args.detections} detections each (the default "
+        f"`DETCAL_MAX_DETECTIONS`; request {len(body) / 2**20:.1f} MiB) for {args.seconds:.0f} "
+        f"s; reference: the same poll with the server idle, in the same run. One uvicorn "
+        f"worker on loopback.\n\n"
+        "| | /healthz p50 ms | /healthz p99 ms | polls |\n|---|---|---|---|\n"
+        f"| idle (reference) | {p['idle'][0]:.2f} | {p['idle'][1]:.2f} | {len(idle)} |\n"
+        f"| under load | {p['load'][0]:.2f} | {p['load'][1]:.2f} | {len(loaded)} |\n\n"
+        f"**Ratio under load / idle: {p['load'][1] / p['idle'][1]:.1f}× p99** (target: p99 "
+        f"≤ 100 ms under load). Calibrate requests served: {len(calib)}, latency p50 "
+        f"{np.percentile(calib, 50):.0f} ms, p99 {np.percentile(calib, 99):.0f} ms. Server "
+        f"RSS: {rss_idle:.0f} MiB idle, peak {rss_peak:.0f} MiB under load "
+        f"(+{rss_peak - rss_idle:.0f} MiB; target ≤ +256 MiB).\n")
+    print(table)
+    from bench._report import write_section
+
+    write_section("health", table)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
