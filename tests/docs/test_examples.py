@@ -106,6 +106,7 @@ INPUTS: dict[str, Callable[[Path], None]] = {
     "val.npz": _val_npz,
     "profile.json": _profile_json,
     "results.json": _results_json,
+    "results_nusc.json": _results_json,
 }
 
 
@@ -158,16 +159,21 @@ def _register_source(doc: Path, blocks: list[Block]) -> None:
     linecache.cache[str(doc)] = (sum(map(len, text)), None, text, str(doc))
 
 
-def cli_commands(path: Path = README) -> list[list[str]]:
-    """The `detcal ...` command lines of the shell blocks in the "## CLI" section of `path`."""
-    parts = path.read_text(encoding="utf-8").split("\n## CLI\n", 1)
-    assert len(parts) == 2, f"{_rel(path)} has no '## CLI' section"
-    section = parts[1].split("\n## ", 1)[0]
+def cli_commands(path: Path = README, section_title: str | None = "CLI") -> list[list[str]]:
+    """The `detcal ...` command lines of the shell blocks in the "## CLI" section of `path`
+    (`section_title` None: of the whole file)."""
+    section = path.read_text(encoding="utf-8")
+    if section_title is not None:
+        parts = section.split(f"\n## {section_title}\n", 1)
+        assert len(parts) == 2, f"{_rel(path)} has no '## {section_title}' section"
+        section = parts[1].split("\n## ", 1)[0]
     commands = []
     for block in fenced_blocks(section):
         if block.lang not in ("sh", "bash", "shell", "console"):
             continue
         for line in block.code.replace("\\\n", " ").splitlines():  # join continued lines
+            if not line.lstrip().startswith("detcal "):
+                continue
             words = shlex.split(line, comments=True)
             if words and words[0] == "detcal":
                 commands.append(words)
@@ -183,3 +189,19 @@ def test_readme_cli_section_runs(tmp_path: Path, inputs):
                                 text=True, timeout=300, check=False)
         assert result.returncode == 0, (f"{shlex.join(command)} exited {result.returncode}:\n"
                                         f"{result.stdout[-2000:]}\n{result.stderr[-2000:]}")
+
+
+def test_api_doc_detcal_calibrate_commands_run(tmp_path: Path, inputs):
+    """docs/api.md's `detcal calibrate` examples write the documented keys."""
+    import json
+
+    commands = [c for c in cli_commands(ROOT / "docs" / "api.md", None) if c[1] == "calibrate"]
+    assert len(commands) >= 2, commands
+    inputs(tmp_path, " ".join(" ".join(c) for c in commands))
+    for command in commands:
+        result = subprocess.run([str(DETCAL), *command[1:]], cwd=tmp_path, capture_output=True,
+                                text=True, timeout=300, check=False)
+        assert result.returncode == 0, (shlex.join(command), result.stderr[-2000:])
+        doc = json.loads((tmp_path / command[command.index("--out") + 1]).read_text())
+        box = next(iter(doc["results"].values()))[0]
+        assert {"detection_score", "detection_score_raw", "covariance", "ellipses"} <= set(box)
