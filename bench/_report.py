@@ -37,3 +37,10 @@ def write_section(name: str, markdown: str) -> None:
         text = text.rstrip() + "\n\n" + body + "\n"
     DOC.parent.mkdir(parents=True, exist_ok=True)
     DOC.write_text(text)
+
+
+def report(name: str, markdown: str) -> int:
+    """Print a benchmark's `markdown` and write it as section `name`; the exit status 0."""
+    print(markdown)
+    write_section(name, markdown)
+    return 0

@@ -127,11 +127,9 @@ def main(argv: list[str] | None = None) -> int:
         f"{np.percentile(calib, 50):.0f} ms, p99 {np.percentile(calib, 99):.0f} ms. Server "
         f"RSS: {rss_idle:.0f} MiB idle, peak {rss_peak:.0f} MiB under load "
         f"(+{rss_peak - rss_idle:.0f} MiB; target ≤ +256 MiB).\n")
-    print(table)
-    from bench._report import write_section
+    from bench._report import report
 
-    write_section("health", table)
-    return 0
+    return report("health", table)
 
 
 if __name__ == "__main__":

@@ -139,11 +139,9 @@ def main(argv: list[str] | None = None) -> int:
                   for name, m in (("/v1/calibrate", cal), ("echo (reference)", echo)))
         + f"\n**Ratio calibrate / echo: {ratio:.2f}× server time (p50), {lat_ratio:.2f}× "
           f"client latency (p50)** (target ≤ 1.3× server time).\n")
-    print(table)
-    from bench._report import write_section
+    from bench._report import report
 
-    write_section("service", table)
-    return 0
+    return report("service", table)
 
 
 if __name__ == "__main__":

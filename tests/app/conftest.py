@@ -13,6 +13,7 @@ from app.settings import Settings
 from app.store import Store
 from calibrators.fit import fit_profile
 from calibrators.synthetic import synthetic_dump
+from tests.app import pg
 
 TOKEN = "test-admin-token-0123456789"
 ADMIN = {"Authorization": f"Bearer {TOKEN}"}
@@ -110,3 +111,27 @@ def wait_job(client, job_id: str, timeout_s: float = 60.0) -> dict:
 def wait():
     """`wait(client, job_id)`: poll a fit job until it finishes."""
     return wait_job
+
+
+# -- the store contract tests' fixtures: a SQLite file and a fresh schema of the shared
+# -- throwaway Postgres cluster (tests/app/pg.py) -------------------------------------------
+@pytest.fixture(scope="session")
+def postgres_cluster() -> Iterator[pg.PostgresCluster]:
+    """The shared throwaway Postgres cluster (started on first use)."""
+    yield pg.acquire()
+    pg.release()
+
+
+@pytest.fixture(params=["sqlite", "postgres"])
+def url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
+    """URL of an empty database: a SQLite file, or a fresh schema on the Postgres cluster."""
+    if request.param == "sqlite":
+        return f"sqlite:///{tmp_path / 'detcal.db'}"
+    return request.getfixturevalue("postgres_cluster").fresh_url()
+
+
+@pytest.fixture
+def store(url: str, tmp_path: Path) -> Iterator[Store]:
+    s = Store(url, tmp_path / "dumps")
+    yield s
+    s.close()

@@ -9,7 +9,6 @@ from __future__ import annotations
 import io
 import json
 import threading
-from collections.abc import Iterator
 from datetime import timedelta
 from pathlib import Path
 
@@ -18,29 +17,6 @@ from sqlalchemy import text
 from sqlalchemy.exc import DBAPIError
 
 from app.store import JobLostError, NotFoundError, Store
-from tests.app import pg
-
-
-@pytest.fixture(scope="session")
-def postgres_cluster() -> Iterator[pg.PostgresCluster]:
-    """The shared throwaway Postgres cluster (started on first use)."""
-    yield pg.acquire()
-    pg.release()
-
-
-@pytest.fixture(params=["sqlite", "postgres"])
-def url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    """URL of an empty database: a SQLite file, or a fresh schema on the Postgres cluster."""
-    if request.param == "sqlite":
-        return f"sqlite:///{tmp_path / 'detcal.db'}"
-    return request.getfixturevalue("postgres_cluster").fresh_url()
-
-
-@pytest.fixture
-def store(url: str, tmp_path: Path) -> Iterator[Store]:
-    s = Store(url, tmp_path / "dumps")
-    yield s
-    s.close()
 
 
 def refuse_updates(store: Store, table: str, when: str | None = None) -> None:

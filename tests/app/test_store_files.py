@@ -7,7 +7,6 @@ import io
 import os
 import stat
 import time
-from collections.abc import Iterator
 from datetime import UTC, datetime, timedelta
 from pathlib import Path
 
@@ -17,29 +16,6 @@ from sqlalchemy import text, update
 from app.store import NotFoundError, Store
 from app.store.files import LOCK_FILE, flocked
 from app.store.models import DumpRow
-from tests.app import pg
-
-
-@pytest.fixture(scope="session")
-def postgres_cluster() -> Iterator[pg.PostgresCluster]:
-    """The shared throwaway Postgres cluster (started on first use)."""
-    yield pg.acquire()
-    pg.release()
-
-
-@pytest.fixture(params=["sqlite", "postgres"])
-def url(request: pytest.FixtureRequest, tmp_path: Path) -> str:
-    """URL of an empty database: a SQLite file, or a fresh schema on the Postgres cluster."""
-    if request.param == "sqlite":
-        return f"sqlite:///{tmp_path / 'detcal.db'}"
-    return request.getfixturevalue("postgres_cluster").fresh_url()
-
-
-@pytest.fixture
-def store(url: str, tmp_path: Path) -> Iterator[Store]:
-    s = Store(url, tmp_path / "dumps")
-    yield s
-    s.close()
 
 
 # -- clean-up of the dumps directory ----------------------------------------------------------

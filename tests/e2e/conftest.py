@@ -46,11 +46,20 @@ class Server:
         self.starts = 0
         self.log = data_dir.parent / "server.log"
 
+    #: Extra `detcal serve` arguments, the admin token it is started with (None: it writes
+    #: its own, as `make run` does) and the path that says it is up.
+    serve_args: tuple[str, ...] = ()
+    token_env: str | None = TOKEN
+    ready_path = "/healthz"
+
     def start(self, timeout_s: float = 60.0) -> None:
-        env = {**os.environ, "DETCAL_ADMIN_TOKEN": TOKEN, "PYTHONUNBUFFERED": "1"}
-        env.pop("DETCAL_DATABASE_URL", None)
-        cmd = [*_detcal(), "serve", "--host", "127.0.0.1", "--port", str(self.port),
-               "--data-dir", str(self.data_dir), "--log-level", "warning"]
+        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+        for name in ("DETCAL_ADMIN_TOKEN", "DETCAL_DATABASE_URL", "DETCAL_DATA_DIR"):
+            env.pop(name, None)
+        if self.token_env is not None:
+            env["DETCAL_ADMIN_TOKEN"] = self.token_env
+        cmd = [*_detcal(), "serve", *self.serve_args, "--host", "127.0.0.1", "--port",
+               str(self.port), "--data-dir", str(self.data_dir), "--log-level", "warning"]
         self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=self.log.open("a"),
                                      stderr=subprocess.STDOUT)
         self.starts += 1
@@ -59,7 +68,7 @@ class Server:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"detcal serve exited: {self.log.read_text()[-2000:]}")
             try:
-                if httpx.get(f"{self.url}/healthz", timeout=1.0).status_code == 200:
+                if httpx.get(f"{self.url}{self.ready_path}", timeout=1.0).status_code == 200:
                     return
             except httpx.TransportError:
                 pass
@@ -81,15 +90,19 @@ class Server:
         self.start()
 
 
-@pytest.fixture(scope="session")
-def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
-    """The running server (started once per session)."""
-    srv = Server(tmp_path_factory.mktemp("e2e") / "data")
+def serving(srv: Server) -> Iterator[Server]:
+    """Start `srv`, yield it, stop it (the body of a server fixture)."""
     srv.start()
     try:
         yield srv
     finally:
         srv.stop()
+
+
+@pytest.fixture(scope="session")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """The running server (started once per session)."""
+    yield from serving(Server(tmp_path_factory.mktemp("e2e") / "data"))
 
 
 @pytest.fixture(scope="session")
@@ -155,12 +168,7 @@ def wait():
 @pytest.fixture
 def own_server(tmp_path: Path) -> Iterator[Server]:
     """A server of this test alone on a fresh data directory (one it may kill and restart)."""
-    srv = Server(tmp_path / "data")
-    srv.start()
-    try:
-        yield srv
-    finally:
-        srv.stop()
+    yield from serving(Server(tmp_path / "data"))
 
 
 @pytest.fixture(scope="session")

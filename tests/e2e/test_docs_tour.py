@@ -38,7 +38,7 @@ import numpy as np
 import pytest
 
 from tests.docs.test_examples import fenced_blocks
-from tests.e2e.conftest import ROOT, Server, _detcal, wait_job
+from tests.e2e.conftest import ROOT, Server, _detcal, serving, wait_job
 
 pytestmark = pytest.mark.e2e
 
@@ -319,26 +319,12 @@ class BootstrapServer(Server):
     """What `make run` starts: `detcal serve --bootstrap`, no token configured (it writes
     `data/admin_token`), on a fresh data directory."""
 
+    serve_args = ("--bootstrap",)
+    token_env = None
+    ready_path = "/readyz"
+
     def start(self, timeout_s: float = 120.0) -> None:
-        env = {**os.environ, "PYTHONUNBUFFERED": "1"}
-        for name in ("DETCAL_ADMIN_TOKEN", "DETCAL_DATABASE_URL", "DETCAL_DATA_DIR"):
-            env.pop(name, None)
-        cmd = [*_detcal(), "serve", "--bootstrap", "--host", "127.0.0.1", "--port",
-               str(self.port), "--data-dir", str(self.data_dir), "--log-level", "warning"]
-        self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=self.log.open("a"),
-                                     stderr=subprocess.STDOUT)
-        self.starts += 1
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            if self.proc.poll() is not None:
-                raise RuntimeError(f"detcal serve exited: {self.log.read_text()[-2000:]}")
-            try:
-                if httpx.get(f"{self.url}/readyz", timeout=1.0).status_code == 200:
-                    return
-            except httpx.TransportError:
-                pass
-            time.sleep(0.1)
-        raise RuntimeError(f"detcal serve did not come up: {self.log.read_text()[-2000:]}")
+        super().start(timeout_s)
 
     @property
     def token(self) -> str:
@@ -350,11 +336,7 @@ def fresh(tmp_path_factory: pytest.TempPathFactory) -> Iterator[BootstrapServer]
     """A `make run` server whose data directory is `data/` of the steps' working directory."""
     srv = BootstrapServer(tmp_path_factory.mktemp("docs_tour") / "work" / "data")
     srv.data_dir.parent.mkdir(parents=True)
-    srv.start()
-    try:
-        yield srv
-    finally:
-        srv.stop()
+    yield from serving(srv)
 
 
 @pytest.fixture(scope="module")
