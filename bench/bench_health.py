@@ -1,13 +1,14 @@
 """/healthz latency and server RSS while the largest allowed calibrate requests are served.
 
-    .venv/bin/python -m bench.bench_health [--seconds 20] [--detections 20000]
+    .venv/bin/python -m bench.bench_health [--seconds 20] [--detections 20000] [--clients 2]
 
 A real `detcal serve` process (one worker) receives back-to-back POST /v1/calibrate requests
 of `--detections` detections (the default `DETCAL_MAX_DETECTIONS`, as large as the request
-limits allow) from two clients, while a third polls GET /healthz every 20 ms. The reference
-is the same /healthz poll with the server idle, measured first in the same run. Prints the
-health latency percentiles (idle and under load, and their ratio), the calibrate latency and
-the server's peak RSS increase over idle; writes the `health` section of docs/benchmarks.md.
+limits allow) from `--clients` clients, while another polls GET /healthz every 20 ms. The
+reference is the same /healthz poll with the server idle, measured first in the same run.
+Prints the health latency percentiles (idle and under load, and their ratio), the calibrate
+latency and the server's peak RSS increase over idle; writes the `health` section of
+docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -51,6 +52,7 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--detections", type=int, default=20_000)
+    ap.add_argument("--clients", type=int, default=2, help="concurrent calibrate clients")
     args = ap.parse_args(argv)
 
     from app.settings import Settings
@@ -96,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
                         r.raise_for_status()
                         calib.append((time.perf_counter() - t0) * 1000.0)
 
-            workers = [threading.Thread(target=load) for _ in range(2)]
+            workers = [threading.Thread(target=load) for _ in range(args.clients)]
             poller.start()
             for w in workers:
                 w.start()
@@ -114,7 +116,7 @@ def main(argv: list[str] | None = None) -> int:
     p = {name: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
          for name, v in (("idle", idle), ("load", loaded))}
     table = (
-        f"GET /healthz polled every 20 ms while two clients send back-to-back POST "
+        f"GET /healthz polled every 20 ms while {args.clients} client(s) send back-to-back POST "
         f"/v1/calibrate requests of {args.detections} detections each (the default "
         f"`DETCAL_MAX_DETECTIONS`; request {len(body) / 2**20:.1f} MiB) for {args.seconds:.0f} "
         f"s; reference: the same poll with the server idle, in the same run. One uvicorn "
