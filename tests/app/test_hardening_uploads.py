@@ -9,7 +9,8 @@ import tracemalloc
 import numpy as np
 import pytest
 
-from tests.calibrators.test_io import arrays, devkit_box, hostile_npz
+from tests.calibrators.test_io import arrays, hostile_npz
+from tests.calibrators.test_io_nuscenes import devkit_box
 
 ADMIN = {"Authorization": "Bearer test-admin-token-0123456789"}
 
