@@ -26,17 +26,14 @@ from scipy.optimize import minimize_scalar
 
 from calibrators.checks import as_float_array, as_int_array
 from calibrators.depth import (
-    _Binned,
-    _binned,
     _check_bounds,
     _check_min_samples,
-    _fit_k,
-    _Terms,
     add_depth_term,
     fit_inputs,
     per_row,
     transform_inputs,
 )
+from calibrators.depth_nll import _Binned, _binned, _fit_k, _Terms
 from calibrators.exceptions import FieldError, check_fitted
 from calibrators.vocab import to_jsonable
 

@@ -5,19 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrators.depth import (
-    _MANTISSA_BITS,
-    _OCTAVES,
-    DepthScaler,
-    _binned,
-    _brent,
-    _class_codes,
-    _log_bin,
-    _spectral,
-    _spectral_2x2,
-    _Terms,
-    add_depth_term,
-)
+from calibrators._spectral import _spectral, _spectral_2x2
+from calibrators.depth import DepthScaler, _class_codes, add_depth_term
+from calibrators.depth_nll import _MANTISSA_BITS, _OCTAVES, _binned, _brent, _log_bin, _Terms
 from calibrators.exceptions import NotFittedError
 
 K_TRUE = {"car": 0.02, "pedestrian": 0.08, "barrier": 0.3}
