@@ -14,18 +14,18 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
-from scipy.special import expit, log_softmax
+from scipy.special import expit
 
 from calibrators import metrics
 from calibrators.dump import Dump
 from calibrators.matched import ts_labels, ts_logits
 from calibrators.score_calibration import make_score_calibrator
+from calibrators.scores import label_logit
 from calibrators.temperature import TemperatureScaler
 from calibrators.vocab import SCORE_METHODS
 
-__all__ = ["ScoreFit", "fit_score_stage", "label_logit"]
+__all__ = ["ScoreFit", "fit_score_stage"]
 
-_EPS = 1e-12
 
 
 @dataclass
@@ -39,19 +39,6 @@ class ScoreFit:
     temperature: float
     params: dict[str, Any] | None
     candidates: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-def label_logit(logits: np.ndarray, labels: np.ndarray, mode: str) -> np.ndarray:
-    """`[N]` logit of the label's probability from final-layer logits `[N, C']` (or the label's
-    column alone, `[N, 1]`): the label's logit in sigmoid mode, `logit(p_label)` of the
-    softmax at T = 1 in softmax mode."""
-    z = np.asarray(logits, dtype=np.float64)
-    rows = np.arange(len(z))
-    if mode == "sigmoid":
-        return z[:, 0] if z.shape[1] == 1 else z[rows, labels]
-    log_p = log_softmax(z, axis=1)[rows, labels]
-    p = np.clip(np.exp(log_p), _EPS, 1.0 - _EPS)
-    return np.log(p) - np.log1p(-p)
 
 
 def fit_score_stage(full: Dump, full_tp: np.ndarray, train: Dump, train_tp: np.ndarray,

@@ -15,6 +15,8 @@ from scipy.special import expit, log_softmax
 from calibrators.checks import as_float_array, check_choice, check_positive
 from calibrators.vocab import SCORE_MODES
 
+_EPS = 1e-12   # probability_logit: how far from 0 and 1 probabilities are clipped
+
 
 def class_probabilities(logits: np.ndarray, mode: str, temperature: float = 1.0) -> np.ndarray:
     """Object-class probabilities `[N, C]` from logits `[N, C']` at temperature `T`."""
@@ -46,3 +48,20 @@ def _logits(logits: np.ndarray, mode: str) -> np.ndarray:
 
 def _temperature(temperature: float) -> float:
     return check_positive("temperature", temperature)
+
+
+def probability_logit(p: np.ndarray) -> np.ndarray:
+    """`logit(p)` of probabilities `[N]`, clipped 1e-12 away from 0 and 1 (finite)."""
+    q = np.clip(np.asarray(p, dtype=np.float64), _EPS, 1.0 - _EPS)
+    return np.log(q) - np.log1p(-q)
+
+
+def label_logit(logits: np.ndarray, labels: np.ndarray, mode: str) -> np.ndarray:
+    """`[N]` logit of the label's probability from final-layer logits `[N, C']` (or the label's
+    column alone, `[N, 1]`): the label's logit in sigmoid mode, `logit(p_label)` of the
+    softmax at T = 1 in softmax mode."""
+    z = np.asarray(logits, dtype=np.float64)
+    rows = np.arange(len(z))
+    if mode == "sigmoid":
+        return z[:, 0] if z.shape[1] == 1 else z[rows, labels]
+    return probability_logit(np.exp(log_softmax(z, axis=1)[rows, labels]))

@@ -38,7 +38,7 @@ from calibrators.ellipse import Ellipse, ellipse, radius_ellipse
 from calibrators.exceptions import FieldError
 from calibrators.levels import check_levels, gaussian_radius
 from calibrators.modulation import modulate_logits
-from calibrators.scores import class_probabilities, predict
+from calibrators.scores import class_probabilities, label_logit, predict, probability_logit
 
 if TYPE_CHECKING:
     from calibrators.conformal import ConformalGroup, ConformalRegions
@@ -47,7 +47,6 @@ if TYPE_CHECKING:
 
 __all__ = ["CalibratedDetections", "calibrate_detections"]
 
-_EPS = 1e-12
 
 
 @dataclass
@@ -188,8 +187,6 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
         if calibrator is None:
             probs = class_probabilities(z, mode, profile.temperature)
             return pred, probs[np.arange(len(pred)), pred], raw, probs
-        from calibrators.fit_scores import label_logit
-
         check_length("logits", pred, len(distances), "boxes")
         return pred, calibrator.transform(label_logit(z, pred, mode), pred,
                                           distances=distances), raw, None
@@ -203,7 +200,7 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
             calibrated = expit(logit(p) / profile.temperature)
         return lab, calibrated, p, None
     check_length("scores", p, len(distances), "boxes")
-    z_label = logit(np.clip(p, _EPS, 1.0 - _EPS))
+    z_label = probability_logit(p)
     return lab, calibrator.transform(z_label, lab, distances=distances), p, None
 
 
