@@ -114,8 +114,9 @@ class CalibrationProfile:
                 setattr(self, key, pf.jsonable(key, getattr(self, key)))
         # The parsed stages (validated here once, used by calibrate).
         self._score = pf.score_stage(self.score_calibration)
-        primary = pf.source_stage(self.cov_source, self.depth_k, self.pooled_k,
-                                  self.covariance_scaling, self.regions, self.classes)
+        primary = pf.SourceStage(self.cov_source, self.depth_k, self.pooled_k,
+                                 *pf.covariance_stage(self.covariance_scaling, self.classes),
+                                 *pf.region_stage(self.regions, len(self.classes)))
         self._sources = {self.cov_source: primary,
                          **pf.other_sources(self.sources, self.cov_source, self.classes)}
 
