@@ -31,19 +31,29 @@ def json_body(model: type[M]) -> Callable[[Request], Awaitable[M]]:
     async def parse(request: Request) -> M:
         require_json(request)
         raw = await request.body()
-        try:   # parsing a large body takes a while: off the event loop, /healthz stays quick
-            return await run_in_threadpool(_validate, model, raw)
-        except ValidationError as exc:
-            errors = exc.errors(include_url=False, include_input=False, include_context=False)
-            raise RequestValidationError(
-                [{**e, "loc": ("body", *e["loc"])} for e in errors]) from None
+        # parsing a large body takes a while: off the event loop, /healthz stays quick
+        return await run_in_threadpool(parse_json, model, raw)
 
     parse.__name__ = f"parse_{model.__name__}"
     return parse
 
 
-def _validate(model: type[M], raw: bytes) -> M:
-    return model.model_validate_json(raw, strict=True)
+def register_body_model(model: type[M]) -> type[M]:
+    """Declare `model` as a raw-parsed request body (its schema joins the OpenAPI
+    components); for routes that read the body themselves."""
+    _BODY_MODELS.append(model)
+    return model
+
+
+def parse_json(model: type[M], raw: bytes) -> M:
+    """`raw` validated strictly as `model`; a `RequestValidationError` (422, `loc` starting
+    with "body") if it is not."""
+    try:
+        return model.model_validate_json(raw, strict=True)
+    except ValidationError as exc:
+        errors = exc.errors(include_url=False, include_input=False, include_context=False)
+        raise RequestValidationError(
+            [{**e, "loc": ("body", *e["loc"])} for e in errors]) from None
 
 
 def body_doc(model: type[BaseModel]) -> dict[str, Any]:
@@ -52,10 +62,14 @@ def body_doc(model: type[BaseModel]) -> dict[str, Any]:
         "schema": {"$ref": f"#/components/schemas/{model.__name__}"}}}}}
 
 
+def dumps_json(body: Any) -> bytes:
+    """`body` as JSON bytes, serialised by pydantic-core (finite floats, shortest repr)."""
+    return pydantic_core.to_json(body)
+
+
 def json_response(body: Any, status_code: int = 200) -> Response:
-    """A JSON response serialised by pydantic-core (finite floats, shortest repr)."""
-    return Response(pydantic_core.to_json(body), status_code=status_code,
-                    media_type="application/json")
+    """A JSON response of `body` (`dumps_json`)."""
+    return Response(dumps_json(body), status_code=status_code, media_type="application/json")
 
 
 def install_openapi(app: FastAPI) -> None:

@@ -30,17 +30,25 @@ def validation_items(exc: RequestValidationError) -> list[dict[str, object]]:
              "type": str(e.get("type", "value_error"))} for e in exc.errors()]
 
 
+ServiceError = RequestValidationError | RequestError | NotFoundError
+
+
+def error_body(exc: ServiceError) -> tuple[int, dict[str, object]]:
+    """Status and body of an error response: validation errors -> 422, `RequestError` -> its
+    status, `NotFoundError` -> 404."""
+    if isinstance(exc, RequestValidationError):
+        return 422, {"detail": validation_items(exc)}
+    if isinstance(exc, RequestError):
+        return exc.status, exc.body()
+    return 404, {"detail": str(exc)}
+
+
 def install_handlers(app: FastAPI) -> None:
-    """Map validation errors -> 422, RequestError -> its status, NotFoundError -> 404."""
+    """Answer every `ServiceError` with its `error_body`."""
 
-    @app.exception_handler(RequestValidationError)
-    async def _invalid(_: Request, exc: RequestValidationError) -> JSONResponse:
-        return JSONResponse({"detail": validation_items(exc)}, status_code=422)
+    async def _handle(_: Request, exc: Exception) -> JSONResponse:
+        status, body = error_body(exc)  # type: ignore[arg-type]
+        return JSONResponse(body, status_code=status)
 
-    @app.exception_handler(RequestError)
-    async def _request_error(_: Request, exc: RequestError) -> JSONResponse:
-        return JSONResponse(exc.body(), status_code=exc.status)
-
-    @app.exception_handler(NotFoundError)
-    async def _not_found(_: Request, exc: NotFoundError) -> JSONResponse:
-        return JSONResponse({"detail": str(exc)}, status_code=404)
+    for kind in (RequestValidationError, RequestError, NotFoundError):
+        app.add_exception_handler(kind, _handle)

@@ -13,11 +13,13 @@ from fastapi import Depends, FastAPI
 from app.body import install_openapi
 from app.bundled_detectors import DetectorService
 from app.cache import ProfileCache
+from app.calibrate_calls import CalibrateEngine
 from app.dashboard.page import DashboardRenderer
 from app.deps import AdminBeforeBodyMiddleware, refuse_empty_form_fields
 from app.errors import install_handlers
 from app.jobs import JobRunner
 from app.limits import BodySizeLimitMiddleware
+from app.offload import CalibrateRunner
 from app.prometheus import MetricsMiddleware, ServiceMetrics
 from app.routers import calibrate, dashboard, detect, fit, health, jobs, metrics, profiles
 from app.settings import Settings, get_settings
@@ -54,6 +56,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                      or "none")
         except ValueError as exc:  # a stored profile that no longer parses must not stop us
             log.error("could not load the active profiles: %s", exc)
+        app.state.calibrator = CalibrateRunner(
+            CalibrateEngine(cache, settings.default_profile, settings.max_detections), settings)
         runner = JobRunner(store, workers=settings.fit_workers,
                            max_dump_bytes=settings.max_dump_bytes)
         app.state.store, app.state.cache, app.state.runner = store, cache, runner
@@ -63,6 +67,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             yield
         finally:
             runner.stop()
+            app.state.calibrator.close()
             store.close()
 
     app = FastAPI(title="detcal", version=detcal_version(), description=DESCRIPTION,

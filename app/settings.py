@@ -33,6 +33,10 @@ class Settings(BaseSettings):
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1)
     fit_workers: int = Field(1, ge=1, description="Fit jobs run at once in one process.")
+    calibrate_processes: int = Field(1, ge=0, description="Worker processes per server process "
+                                     "for large calibrate bodies (0: all in threads).")
+    offload_bytes: int = Field(1 * 2**20, ge=0, description="Calibrate bodies larger than this "
+                               "are parsed and calibrated in a worker process.")
     dashboard_sensor: str = Field("lidar", description="Sensor of the dashboard's BEV frame.")
     dashboard_seed: int = Field(0, description="Simulated frame seed drawn on the dashboard.")
 

@@ -4,13 +4,14 @@ from __future__ import annotations
 
 from typing import Annotated
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
-from app.body import body_doc, json_body, json_response
-from app.calibration import calibrate_frames
-from app.deps import CacheDep, MetricsDep, SettingsDep
-from app.nuscenes_results import calibrate_results
+from app.body import body_doc, register_body_model
+from app.calibrate_calls import CalibrateCall
+from app.deps import MetricsDep, require_json
+from app.offload import CalibrateRunner
+from app.prometheus import ServiceMetrics
 from app.schemas.calibrate import (
     DEFAULT_LEVELS,
     LEVELS_SCHEMA,
@@ -23,32 +24,38 @@ from app.schemas.nuscenes import NuScenesResults
 
 router = APIRouter(prefix="/v1", tags=["calibrate"],
                    responses={404: {"model": ErrorResponse}, 413: {"model": ErrorResponse},
-                              415: {"model": ErrorResponse}, 422: {"model": ErrorResponse}})
+                              415: {"model": ErrorResponse}, 422: {"model": ErrorResponse},
+                              503: {"model": ErrorResponse}})
+
+
+def _calibrator(request: Request) -> CalibrateRunner:
+    return request.app.state.calibrator
+
+
+CalibratorDep = Annotated[CalibrateRunner, Depends(_calibrator)]
+
+
+async def _serve(runner: CalibrateRunner, metrics: ServiceMetrics, call: CalibrateCall
+                 ) -> Response:
+    out = await runner.run(call)
+    if out.profile is not None:
+        metrics.detections.labels(out.profile).inc(out.detections)
+    return Response(out.content, status_code=out.status, media_type="application/json")
 
 
 @router.post("/calibrate", response_model=CalibrateResponse,
-             openapi_extra=body_doc(CalibrateRequest))
-def calibrate(body: Annotated[CalibrateRequest, Depends(json_body(CalibrateRequest))],
-              cache: CacheDep, settings: SettingsDep, metrics: MetricsDep) -> Response:
+             openapi_extra=body_doc(register_body_model(CalibrateRequest)))
+async def calibrate(request: Request, calibrator: CalibratorDep, metrics: MetricsDep
+                    ) -> Response:
     """Calibrate raw detections with the active (or a named) profile version."""
-    loaded = cache.resolve(body.profile, settings.default_profile)
-    rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence, levels=body.levels,
-                            max_detections=settings.max_detections)
-    metrics.detections.labels(loaded.record.name).inc(sum(len(r) for r in rows))
-    prof = loaded.profile
-    return json_response({
-        "profile": loaded.ref(), "classes": list(prof.classes), "cov_dims": list(prof.cov_dims),
-        "ellipse_confidence": body.ellipse_confidence,
-        "frames": [{"frame_id": f.frame_id, "detections": r} for f, r in zip(body.frames, rows,
-                                                                                strict=True)],
-    })
+    require_json(request)
+    return await _serve(calibrator, metrics, CalibrateCall("calibrate", await request.body()))
 
 
 @router.post("/calibrate/nuscenes", response_model=NuScenesResults,
-             openapi_extra=body_doc(NuScenesResults))
-def calibrate_nuscenes(
-    body: Annotated[NuScenesResults, Depends(json_body(NuScenesResults))], cache: CacheDep,
-    settings: SettingsDep, metrics: MetricsDep,
+             openapi_extra=body_doc(register_body_model(NuScenesResults)))
+async def calibrate_nuscenes(
+    request: Request, calibrator: CalibratorDep, metrics: MetricsDep,
     profile: Annotated[ProfileRefText | None, Query(description="`name` or `name@version`")
                       ] = None,
     ellipse_confidence: Annotated[float, Query(gt=0.0, lt=1.0)] = 0.95,
@@ -58,9 +65,7 @@ def calibrate_nuscenes(
                     f"{list(DEFAULT_LEVELS)}.")] = None,
 ) -> Response:
     """Calibrate a nuScenes results document; scores replaced, raw score, Σ', ellipses added."""
-    loaded = cache.resolve(profile, settings.default_profile, loc=("query", "profile"))
-    doc, n = calibrate_results(loaded, body, ellipse_confidence,
-                               DEFAULT_LEVELS if levels is None else levels,
-                               max_detections=settings.max_detections)
-    metrics.detections.labels(loaded.record.name).inc(n)
-    return json_response(doc)
+    require_json(request)
+    call = CalibrateCall("nuscenes", await request.body(), profile, ellipse_confidence,
+                         None if levels is None else tuple(levels))
+    return await _serve(calibrator, metrics, call)

@@ -15,6 +15,9 @@ from __future__ import annotations
 
 import io
 import math
+import os
+import signal
+import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
@@ -102,11 +105,33 @@ class World:
     def upload(self) -> dict:
         return {"files": {"dump": ("val.npz", self.npz)}}
 
+    def worker_killed(self, request: dict) -> dict:
+        """`request`, after the offload app's calibrate worker was started and killed."""
+        client = self.clients["offload"]
+        assert client.post(CAL, json={"frames": self.frames(1)}).status_code == 200
+        pids = client.app.state.calibrator.worker_pids()
+        assert pids, "the calibrate worker did not start"
+        for pid in pids:
+            os.kill(pid, signal.SIGKILL)
+            _wait_gone(pid)
+        return request
+
+
+def _wait_gone(pid: int, timeout_s: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return
+        time.sleep(0.01)
+
 
 @dataclass(frozen=True)
 class Case:
     """One request: `path` is the route's template, `request(world)` the TestClient kwargs
-    (`url` included); `client` picks the store: seeded, empty, or small (tiny body limits)."""
+    (`url` included); `client` picks the store: seeded, empty, small (tiny body limits) or
+    offload (seeded; every calibrate body goes to a worker process)."""
 
     method: str
     path: str
@@ -137,7 +162,13 @@ CASES = [
          client="small"),
     Case("POST", CAL, 415, url(CAL, content=b"{}", headers=TEXT)),
     Case("POST", CAL, 422, url(CAL, json={"frames": []})),
+    Case("POST", CAL, 200, lambda w: {"url": CAL, "json": {"frames": w.frames()}},
+         client="offload"),
+    Case("POST", CAL, 503, lambda w: w.worker_killed({"url": CAL, "json": {
+        "frames": w.frames()}}), client="offload"),
     Case("POST", NUS, 200, lambda w: {"url": NUS, "json": w.nuscenes()}),
+    Case("POST", NUS, 503, lambda w: w.worker_killed({"url": NUS, "json": w.nuscenes()}),
+         client="offload"),
     Case("POST", NUS, 404, lambda w: {"url": NUS, "json": w.nuscenes(),
                                       "params": {"profile": "nope"}}),
     Case("POST", NUS, 413, lambda w: {"url": NUS, "json": w.nuscenes(10)}, client="small"),
@@ -194,7 +225,7 @@ def world(tmp_path_factory, dump_given, detection, npz_bytes, profile_json_given
                                **limits)
                 for kind, limits in (("seeded", {}), ("empty", {}), (
                     "small", {"max_request_bytes": SMALL_LIMIT,
-                              "max_upload_bytes": SMALL_LIMIT}))}
+                              "max_upload_bytes": SMALL_LIMIT}), ("offload", {"offload_bytes": 0}))}
     store = _store(settings["seeded"], *seeded)
     dump = store.put_dump(io.BytesIO(npz_bytes), "npz")
     job = store.create_job("fitted", {"threshold": 2.0}, dump.sha256)
@@ -204,6 +235,7 @@ def world(tmp_path_factory, dump_given, detection, npz_bytes, profile_json_given
     store.close()
     _store(settings["empty"]).close()
     _store(settings["small"], *seeded).close()
+    _store(settings["offload"], *seeded).close()
     with pytest.MonkeyPatch.context() as mp, ExitStack() as stack:
         mp.setattr(JobRunner, "start", lambda self: None)
         clients = {}

@@ -1,0 +1,106 @@
+"""Calibrate requests run where they cannot stall the server: small bodies in a thread of the
+server process, large ones in calibrate worker processes.
+
+Parsing a large JSON body and building its response are Python work that holds the GIL in
+long stretches (pydantic-core validates 20,000 detections in ~0.25 s in one call that never
+releases it); in a thread of the server process that stalls the event loop and `/healthz`
+with it. A body over `offload_bytes` therefore goes, as bytes, to a pool of `processes`
+spawned worker processes, each with its own store connection and profile cache
+(`app.calibrate_calls.CalibrateEngine`), and its response comes back as bytes. Small bodies
+stay in a thread: the round trip to a process would cost more than the parse.
+
+The pool starts on the first large request (tests and small clients never pay for it). A
+worker that dies (killed, out of memory) fails its request with a 503 and the pool is
+replaced for the next one.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import multiprocessing
+import threading
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+
+from starlette.concurrency import run_in_threadpool
+
+from app.body import dumps_json
+from app.cache import ProfileCache
+from app.calibrate_calls import CalibrateCall, CalibrateEngine, CallOutcome
+from app.settings import Settings
+from app.store import Store
+
+log = logging.getLogger("detcal.offload")
+
+_ENGINE: CalibrateEngine | None = None   # the engine of a worker process
+
+
+def _worker_init(settings: Settings) -> None:
+    """Open the store and a profile cache in a new worker process."""
+    global _ENGINE
+    store = Store(settings.sqlalchemy_url, settings.dumps_dir)
+    _ENGINE = CalibrateEngine(ProfileCache(store), settings.default_profile,
+                              settings.max_detections)
+
+
+def _worker_run(call: CalibrateCall) -> CallOutcome:
+    assert _ENGINE is not None, "worker not initialised"
+    return _ENGINE.run(call)
+
+
+class CalibrateRunner:
+    """Runs `CalibrateCall`s in a thread (small bodies) or a worker process (large ones)."""
+
+    def __init__(self, engine: CalibrateEngine, settings: Settings) -> None:
+        self.engine = engine
+        self.settings = settings
+        self.processes = settings.calibrate_processes
+        self.offload_bytes = settings.offload_bytes
+        self._pool: ProcessPoolExecutor | None = None
+        self._lock = threading.Lock()
+
+    def offloads(self, call: CalibrateCall) -> bool:
+        """Whether `call` goes to a worker process."""
+        return self.processes > 0 and len(call.body) > self.offload_bytes
+
+    async def run(self, call: CalibrateCall) -> CallOutcome:
+        """The outcome of `call`, computed off the event loop."""
+        if not self.offloads(call):
+            return await run_in_threadpool(self.engine.run, call)
+        pool = self._ensure_pool()
+        try:
+            return await asyncio.wrap_future(pool.submit(_worker_run, call))
+        except BrokenProcessPool:
+            log.error("a calibrate worker process died; replacing the pool")
+            self._discard(pool)
+            return CallOutcome(503, dumps_json({"detail": "the calibrate worker processing this "
+                                                          "request died; retry it"}))
+
+    def _ensure_pool(self) -> ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                self._pool = ProcessPoolExecutor(
+                    max_workers=self.processes, mp_context=multiprocessing.get_context("spawn"),
+                    initializer=_worker_init, initargs=(self.settings,))
+            return self._pool
+
+    def _discard(self, pool: ProcessPoolExecutor) -> None:
+        with self._lock:
+            if self._pool is pool:
+                self._pool = None
+        pool.shutdown(wait=False, cancel_futures=True)
+
+    def worker_pids(self) -> list[int]:
+        """Process ids of the running worker processes (none before the first large body)."""
+        with self._lock:
+            pool = self._pool
+        return [] if pool is None else [p.pid for p in list(pool._processes.values())
+                                         if p.pid is not None]
+
+    def close(self) -> None:
+        """Stop the worker processes (at shutdown)."""
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=True, cancel_futures=True)
