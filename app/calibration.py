@@ -24,7 +24,7 @@ from app.cache import LoadedProfile
 from app.errors import RequestError
 from app.schemas.calibrate import DEFAULT_LEVELS, DetectionIn, FrameIn
 from calibrators.exceptions import FieldError
-from calibrators.io import ellipses_json
+from calibrators.io import ellipses_json, unbounded_none
 from calibrators.levels import check_levels
 from calibrators.serving import CalibratedDetections
 
@@ -137,8 +137,6 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
         try:
             res = prof.calibrate(**kwargs, levels=levels)  # type: ignore[arg-type]
         except FieldError as exc:
-            if exc.field == "levels":
-                raise _level_error(exc, loaded, kwargs, g, where, locate, options_in) from None
             raise _located(exc, key, g, where, locate, loaded.record.ref) from None
         _rows(res, prof.classes, g, confidence, flat, rows)
     out: list[list[dict[str, object]]] = [[] for _ in frames]
@@ -205,24 +203,6 @@ def _arrays(key: GroupKey, g: _Group, confidence: float) -> dict[str, object]:
     return kwargs
 
 
-def _level_error(exc: FieldError, loaded: LoadedProfile, kwargs: dict[str, object],
-                 g: _Group, where: list[tuple[int, int]], locate: Locate, options_in: str
-                 ) -> RequestError:
-    """A level the profile cannot serve for a detection of the group (a conformal group with
-    too few calibration points): at `levels`, or at `ellipse_confidence` when that level alone
-    cannot be served."""
-    field = "levels"
-    try:
-        loaded.profile.calibrate(**kwargs)  # type: ignore[arg-type]
-    except FieldError as alone:
-        if alone.field == "levels":
-            field = "ellipse_confidence"
-    row = exc.row if exc.row is not None and 0 <= exc.row < len(g.index) else 0
-    path = "/".join(str(p) for p in locate(*where[g.index[row]])[1:])
-    return _mismatch([options_in, field], f"profile {loaded.record.ref}: {exc}; that detection "
-                                          f"is {path}")
-
-
 def _rows(res: CalibratedDetections, classes: Sequence[str], g: _Group, confidence: float,
           flat: list[DetectionIn], rows: list[dict[str, object] | None]) -> None:
     """Response rows of one calibrated group, written at their request positions."""
@@ -232,8 +212,9 @@ def _rows(res: CalibratedDetections, classes: Sequence[str], g: _Group, confiden
     cls_scores = res.class_scores.tolist() if res.class_scores is not None else None
     covs = res.covariances.tolist()
     el = res.ellipses
-    if el is not None:
-        major, minor, angle = el.semi_major.tolist(), el.semi_minor.tolist(), el.angle.tolist()
+    if el is not None:   # an unbounded ellipse (inf semi-axes, see serving) has null axes
+        major, minor = (unbounded_none(a, np.isinf(a)) for a in (el.semi_major, el.semi_minor))
+        angle = el.angle.tolist()
     regions = ellipses_json(res)
     dist = res.distances.tolist()
     for j, i in enumerate(g.index):

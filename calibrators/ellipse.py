@@ -47,17 +47,23 @@ def ellipse(cov: np.ndarray, confidence: float = 0.95) -> Ellipse:
 
 
 def radius_ellipse(cov: np.ndarray, radius: np.ndarray) -> Ellipse:
-    """Ellipses of `cov [N, 2, 2]` with Mahalanobis radius `radius [N]` (>= 0, finite):
-    semi-axes `r·sqrt(λ)`, the region `{x: xᵀ Σ⁻¹ x <= r²}` (a conformal radius, or
-    `sqrt(χ²₂(p))` for the Gaussian ellipse of confidence p)."""
-    r = as_float_array("radius", radius, ndim=1)
-    if (r < 0).any():
-        raise ValueError(f"radius must be >= 0, got {float(r.min())}")
+    """Ellipses of `cov [N, 2, 2]` with Mahalanobis radius `radius [N]` (>= 0): semi-axes
+    `r·sqrt(λ)`, the region `{x: xᵀ Σ⁻¹ x <= r²}` (a conformal radius, or `sqrt(χ²₂(p))`
+    for the Gaussian ellipse of confidence p). An infinite radius (a conformal level beyond
+    what the group's calibration points certify) is the whole plane: both semi-axes inf."""
+    r = np.asarray(radius, dtype=np.float64)
+    if r.ndim != 1:
+        raise ValueError(f"radius must have 1 dimension, got shape {r.shape}")
+    if not (r >= 0).all():   # NaN fails too
+        raise ValueError(f"radius must be >= 0 (inf: unbounded), got {float(r[~(r >= 0)][0])}")
     single, (high, low, angle) = _eigen(cov)
     if single or r.shape[0] != high.shape[0]:
         raise ValueError(f"radius must have one entry per covariance [N, 2, 2], got "
                          f"{r.shape[0]} for {high.shape[0]}")
-    return Ellipse(r * np.sqrt(high), r * np.sqrt(low), angle)
+    unbounded = np.isinf(r)
+    finite = np.where(unbounded, 0.0, r)
+    return Ellipse(np.where(unbounded, np.inf, finite * np.sqrt(high)),
+                   np.where(unbounded, np.inf, finite * np.sqrt(low)), angle)
 
 
 def _eigen(cov: np.ndarray) -> tuple[bool, tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -118,20 +118,27 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
                                 region_radii={} if wanted is None or not radii
                                 else {float(q): radii[float(q)] for q in wanted},
                                 cov_source=stage.source)
-    _check_finite(out, covariances is not None)
+    _check_finite(out, covariances is not None, radii.get(float(confidence)))
     return out
 
 
-def _check_finite(res: CalibratedDetections, given_cov: bool) -> None:
+def _check_finite(res: CalibratedDetections, given_cov: bool,
+                  confidence_radii: np.ndarray | None) -> None:
     """A FieldError at the first detection with a calibrated number that is not finite (finite
     but huge inputs can overflow float64): at its box when its distance overflowed or it gave
-    no covariance, else at its covariance."""
+    no covariance, else at its covariance. An unbounded region (infinite radius: a level its
+    conformal group cannot certify) is not an overflow."""
     n = len(res)
-    served = [res.scores, res.distances, res.covariances,
-              *(res.ellipses or ()), *(a for region in res.regions.values() for a in region)]
+    served = [(res.scores, None), (res.distances, None), (res.covariances, None),
+              *((a, confidence_radii) for a in res.ellipses or ()),
+              *((a, res.region_radii.get(q)) for q, region in res.regions.items()
+                for a in region)]
     bad = np.zeros(n, dtype=bool)
-    for arr in served:
-        bad |= ~np.isfinite(np.asarray(arr, dtype=np.float64).reshape(n, -1)).all(axis=1)
+    for arr, radii in served:
+        ok = np.isfinite(np.asarray(arr, dtype=np.float64).reshape(n, -1)).all(axis=1)
+        if radii is not None:
+            ok |= np.isinf(radii)
+        bad |= ~ok
     if not bad.any():
         return
     row = int(np.argmax(bad))
@@ -274,14 +281,6 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
     index = conformal.group_index(labels, distances)
     names = {int(g): _group_name(profile, conformal, conformal.groups_[g])
              for g in np.unique(index)}
-    bad = ~np.isfinite(radii)
-    if bad.any():
-        i, j = (int(v) for v in np.argwhere(bad)[0])
-        n = conformal.groups_[index[i]].n
-        raise FieldError("levels", f"level {levels[j]} needs more calibration points than "
-                                   f"the conformal group serving detection {i} has "
-                                   f"({names[int(index[i])]}: {n}); the largest level it "
-                                   f"serves is {n / (n + 1):.4g}", row=i)
     return ({float(q): radius_ellipse(block, radii[:, j]) for j, q in enumerate(levels)},
             {float(q): radii[:, j] for j, q in enumerate(levels)}, method,
             [names[g] for g in index.tolist()])

@@ -47,7 +47,6 @@ from scipy.special import log_softmax
 from calibrators import metrics
 from calibrators.apply import apply_profile, check_profile_fits
 from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
 from calibrators.fit_regions import xy_mahalanobis
 from calibrators.levels import DEFAULT_DISTANCE_EDGES, gaussian_radius
 from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
@@ -136,12 +135,7 @@ def _calibrated(dump: Dump, profile: CalibrationProfile, levels: Sequence[float]
     probs = _full_probs(dump, profile.temperature, profile.modulation)
     if n == 0:
         return _State(np.zeros(0), probs, np.zeros((0, dim, dim))), None
-    try:
-        out = apply_profile(dump, profile, levels=levels)
-    except FieldError as exc:
-        if exc.field != "levels":
-            raise
-        out = apply_profile(dump, profile)   # a level the regions cannot serve: no coverage
+    out = apply_profile(dump, profile, levels=levels)
     return _State(out.scores, probs, out.covariances), out
 
 
@@ -167,7 +161,9 @@ def _regions(dump: Dump, profile: CalibrationProfile, tp: np.ndarray, res: np.nd
     table = metrics.coverage_table(md, radii, levels, names, out.distances[tp], edges)
     gauss = np.array([gaussian_radius(q) for q in levels])
     return {"method": out.region_method, "levels": levels, "coverage": table.to_dict(),
-            "mean_area": metrics.mean_ellipse_area(block, radii).tolist(),
+            # an unbounded level (beyond its conformal groups' points) has no finite area
+            "mean_area": [None if np.isinf(a) else a
+                          for a in metrics.mean_ellipse_area(block, radii).tolist()],
             "gaussian_coverage": (md[:, None] <= gauss[None, :]).mean(axis=0).tolist()}
 
 

@@ -148,7 +148,8 @@ class Summary:
     module docstring of `calibrators.summary` lists them (plain JSON, drawn by the dashboard);
     regions (with a profile serving ellipses): {method, levels [Q], coverage: the
     `metrics.CoverageTable` dict (overall [Q] and rows per class × distance bin), mean_area [Q]
-    m², gaussian_coverage [Q]: what χ²₂ radii would cover on the same Σ'}.
+    m² (None: unbounded, a level above what the conformal groups certify),
+    gaussian_coverage [Q]: what χ²₂ radii would cover on the same Σ'}.
     """
 
     schema: int

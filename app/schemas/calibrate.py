@@ -23,8 +23,8 @@ DEFAULT_LEVELS = (0.95,)
 LEVELS_SCHEMA = {"minItems": 1, "maxItems": MAX_LEVELS, "uniqueItems": True,
                  "items": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1}}
 LEVELS_TEXT = (f"Coverage levels of the served `ellipses`: at most {MAX_LEVELS} distinct "
-               f"numbers in (0, 1); a conformal profile serves a level only up to n/(n + 1) "
-               f"of each group's n calibration points.")
+               f"numbers in (0, 1); a conformal group of n calibration points bounds a "
+               f"level only up to n/(n + 1): above, the region is unbounded (null axes).")
 
 _EXAMPLE_DETECTION = {
     "logits": [2.1, -3.0, -4.2, -5.0, -4.1, -3.3, -4.4, -4.9, -5.1, -3.8],
@@ -137,11 +137,15 @@ class CalibrateRequest(BaseModel):
     frames: list[FrameIn] = Field(min_length=1)
 
 
+_UNBOUNDED = ("Metres; null when the region is unbounded (a conformal level above n/(n + 1) of "
+              "its group's n calibration points: the whole plane).")
+
+
 class EllipseOut(BaseModel):
     """Uncertainty ellipse of the x, y block of the calibrated covariance."""
 
-    semi_major: float
-    semi_minor: float
+    semi_major: float | None = Field(description=_UNBOUNDED)
+    semi_minor: float | None = Field(description=_UNBOUNDED)
     angle: float = Field(description="Major-axis angle from +x, radians, in (-pi/2, pi/2].")
     confidence: float
 
@@ -150,8 +154,8 @@ class LevelEllipseOut(BaseModel):
     """The served region of one level: an ellipse of the x, y block of the calibrated
     covariance with the Mahalanobis radius of its method."""
 
-    semi_major: float
-    semi_minor: float
+    semi_major: float | None = Field(description=_UNBOUNDED)
+    semi_minor: float | None = Field(description=_UNBOUNDED)
     angle: float = Field(description="Major-axis angle from +x, radians, in (-pi/2, pi/2].")
     method: Literal[REGION_METHODS] = Field(  # type: ignore[valid-type]
         description="`conformal` (the group's split-conformal radius) or `gaussian` "

@@ -11,7 +11,12 @@ from calibrators.io.atomic import atomic_write
 from calibrators.io.hashing import file_sha256
 from calibrators.io.npz import load_dump, save_dump
 from calibrators.io.nuscenes import load_nuscenes
-from calibrators.io.nuscenes_write import calibrate_results_document, ellipses_json, save_nuscenes
+from calibrators.io.nuscenes_write import (
+    calibrate_results_document,
+    ellipses_json,
+    save_nuscenes,
+    unbounded_none,
+)
 
 __all__ = ["atomic_write", "calibrate_results_document", "ellipses_json", "file_sha256",
-           "load_dump", "load_nuscenes", "save_dump", "save_nuscenes"]
+           "load_dump", "load_nuscenes", "save_dump", "save_nuscenes", "unbounded_none"]

@@ -141,8 +141,10 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
     "method": "conformal" | "gaussian", "group": "car 15-30 m" | None}}` for each level `q`
     (the group is None for gaussian regions), or None when the profile's cov_dims lack x or y.
 
-    The angle is the major axis's from +x (`calibrators.ellipse`). Raises a FieldError naming
-    the level and the detection (`row`) of a semi-axis that is not finite.
+    The angle is the major axis's from +x (`calibrators.ellipse`). The semi-axes of an
+    unbounded region (a level beyond what its conformal group certifies: infinite radius) are
+    None. Raises a FieldError naming the level and the detection (`row`) of any other
+    semi-axis that is not finite.
     """
     n = len(calibrated)
     method = calibrated.region_method
@@ -152,13 +154,23 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
     columns = []
     for level, region in calibrated.regions.items():
         key = str(float(level))
+        unbounded = np.isinf(np.asarray(calibrated.region_radii[level]).reshape(n))
         arrays = [np.asarray(a, dtype=np.float64).reshape(n) for a in region]
         for name, arr in zip(("semi_major", "semi_minor", "angle"), arrays, strict=True):
-            check_finite(f"ellipses[{key!r}].{name}", arr)
-        columns.append((key, *(a.tolist() for a in arrays)))
+            check_finite(f"ellipses[{key!r}].{name}", np.where(unbounded, 0.0, arr))
+        columns.append((key, *(unbounded_none(a, unbounded) for a in arrays[:2]),
+                        arrays[2].tolist()))
     return [{key: {"semi_major": major[i], "semi_minor": minor[i], "angle": angle[i],
                    "method": method, "group": None if groups is None else groups[i]}
              for key, major, minor, angle in columns} for i in range(n)]
+
+
+def unbounded_none(values: np.ndarray, unbounded: np.ndarray) -> list[float | None]:
+    """`values [N]` as a list with None where `unbounded [N]` (JSON has no infinity)."""
+    out: list[float | None] = values.tolist()
+    for i in np.flatnonzero(unbounded).tolist():
+        out[i] = None
+    return out
 
 
 # -- reading ----------------------------------------------------------------------------------

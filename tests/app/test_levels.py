@@ -224,21 +224,31 @@ def test_bad_levels_are_a_422_without_detections(client):
     assert "repeats" in r.json()["detail"][0]["msg"]
 
 
-def test_a_level_beyond_a_conformal_group_is_a_422_naming_level_and_group(
+def test_a_level_beyond_a_conformal_group_is_unbounded_with_null_axes(
         client, dump_given, detection):
+    """Split-conformal regions at a level above n/(n + 1) of the group's n calibration
+    points are the whole plane (MAPIE's infinite intervals): null semi-axes, never a 422 and
+    never `Infinity`; the levels the group certifies are served as usual."""
+    frames = _frames(dump_given, detection)
     r = client.post(CAL, json={"profile": "conformal", "levels": [0.5, 0.999],
-                               "frames": _frames(dump_given, detection)})
-    assert r.status_code == 422, r.text
-    (item,) = r.json()["detail"]
-    assert item["loc"] == ["body", "levels"]
-    msg = item["msg"]
-    assert "profile conformal@1" in msg and "level 0.999" in msg, msg
-    assert re.search(r"\((pooled classes|[a-z_]+) \d+(-\d+|\+) m: \d+\)", msg), msg
-    assert "frames/0/detections/" in msg
+                               "frames": frames})
+    assert r.status_code == 200, r.text
+    assert "Infinity" not in r.text
+    dets = r.json()["frames"][0]["detections"]
+    for det in dets:
+        wide, usual = det["ellipses"]["0.999"], det["ellipses"]["0.5"]
+        assert wide["semi_major"] is None and wide["semi_minor"] is None, wide
+        assert wide["angle"] == usual["angle"] and wide["group"] == usual["group"]
+        assert usual["semi_major"] >= usual["semi_minor"] > 0
     r = client.post(CAL, json={"profile": "conformal", "ellipse_confidence": 0.999,
-                               "frames": _frames(dump_given, detection)})
-    assert r.status_code == 422, r.text
-    assert r.json()["detail"][0]["loc"] == ["body", "ellipse_confidence"]
+                               "frames": frames})
+    assert r.status_code == 200, r.text
+    ellipse = r.json()["frames"][0]["detections"][0]["ellipse"]
+    assert ellipse["semi_major"] is None and ellipse["confidence"] == 0.999
+    r = client.post(f"{NUS}?profile=conformal&levels=0.999", json=_nus_document(dump_given))
+    assert r.status_code == 200, r.text
+    assert all(b["ellipses"]["0.999"]["semi_major"] is None
+               for b in r.json()["results"]["tok0"])
 
 
 @pytest.mark.filterwarnings("ignore:overflow encountered:RuntimeWarning")
@@ -284,7 +294,6 @@ def test_nuscenes_boxes_gain_ellipses_per_level(client, dump_given, profile_json
     ("levels=0.5&levels=nan", ["query", "levels", 1]),
     ("levels=abc", ["query", "levels", 0]),
     ("levels=0.5&levels=0.5", ["query", "levels", 1]),
-    ("profile=conformal&levels=0.999", ["query", "levels"]),
 ])
 def test_nuscenes_bad_levels_are_a_422_at_the_query(client, dump_given, query, loc):
     r = client.post(f"{NUS}?{query}", json=_nus_document(dump_given))
@@ -384,7 +393,6 @@ def test_cli_calibrate_version_1_profile_default_and_given_levels(workdir, level
     (["abc"], "--levels must be numbers"),
     (["0.5", "0.5"], "--levels[1] = 0.5 repeats --levels[0]"),
     ([str(round(0.04 * k, 2)) for k in range(1, 22)], "--levels has 21 entries"),
-    (["0.5", "0.999"], "--levels: level 0.999 needs more calibration points"),
 ])
 def test_cli_bad_levels_exit_2_with_one_line(workdir, levels, message, capsys, monkeypatch):
     monkeypatch.chdir(workdir)   # the subprocess's handler code, run in-process

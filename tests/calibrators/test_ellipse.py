@@ -97,3 +97,18 @@ def test_95_percent_of_gaussian_samples_fall_inside():
 def test_bad_input(cov, conf, match):
     with pytest.raises(ValueError, match=match):
         ellipse(cov, conf)
+
+
+def test_an_infinite_radius_is_the_whole_plane_and_nan_or_negative_is_refused():
+    from calibrators.ellipse import radius_ellipse
+
+    cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 0.0]]])
+    el = radius_ellipse(cov, np.array([np.inf, 2.0]))
+    assert el.semi_major[0] == np.inf and el.semi_minor[0] == np.inf
+    assert (el.semi_major[1], el.semi_minor[1]) == (2.0, 0.0)
+    assert np.isfinite(el.angle).all()
+    el = radius_ellipse(cov[1:], np.array([np.inf]))   # inf·0 would be nan: still inf
+    assert el.semi_minor[0] == np.inf
+    for bad in (np.nan, -1.0):
+        with pytest.raises(ValueError, match="radius must be >= 0"):
+            radius_ellipse(cov[:1], np.array([bad]))
