@@ -10,6 +10,7 @@ from __future__ import annotations
 from collections.abc import Awaitable, Callable
 from typing import Any, TypeVar
 
+import orjson
 import pydantic_core
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -63,8 +64,12 @@ def body_doc(model: type[BaseModel]) -> dict[str, Any]:
 
 
 def dumps_json(body: Any) -> bytes:
-    """`body` as JSON bytes, serialised by pydantic-core (finite floats, shortest repr)."""
-    return pydantic_core.to_json(body)
+    """`body` as strict JSON bytes, serialised by orjson (shortest float repr; numpy arrays
+    and scalars directly; pydantic models through pydantic-core). A non-finite float never
+    reaches it from the calibrate path (the library refuses or nulls them first); orjson
+    would write it as null, never as the non-JSON `NaN` / `Infinity`."""
+    return orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY,
+                        default=pydantic_core.to_jsonable_python)
 
 
 def json_response(body: Any, status_code: int = 200) -> Response:

@@ -1,7 +1,9 @@
 """One calibrate request, from the raw body to the response bytes.
 
-`CalibrateEngine.run(call)` parses the body (strictly, as `app.body.parse_json`), resolves the
-profile, calibrates (`app.calibration`, `app.nuscenes_results`) and serialises the response;
+`CalibrateEngine.run(call)` parses the body (JSON strictly, as `app.body.parse_json`; an Arrow
+IPC stream with `calibrators.io.arrow_batch`), resolves the profile, calibrates
+(`app.calibration`, `app.nuscenes_results`, or the profile directly for a batch) and
+serialises the response in the body's format;
 an error becomes the same 4xx body the app's exception handlers write (`app.errors`). It
 needs nothing from the request but the `CalibrateCall`, so the same code runs in a thread of
 the server process or in a calibrate worker process (`app.offload`), which has its own
@@ -23,30 +25,42 @@ from app.nuscenes_results import calibrate_results
 from app.schemas.calibrate import DEFAULT_LEVELS, CalibrateRequest
 from app.schemas.nuscenes import NuScenesResults
 from app.store import NotFoundError
+from calibrators.exceptions import FieldError
+from calibrators.io.arrow_batch import (
+    ARROW_STREAM,
+    LIBRARY_TO_COLUMN,
+    batch_request,
+    calibrated_batch,
+    read_stream,
+    write_stream,
+)
 
-CallKind = Literal["calibrate", "nuscenes"]
+CallKind = Literal["calibrate", "nuscenes", "arrow"]
 
 
 @dataclass(frozen=True)
 class CalibrateCall:
-    """What a calibrate request carries: the raw JSON body and, for the nuScenes route, the
-    query's already validated options (the plain route has them in its body)."""
+    """What a calibrate request carries: the raw body (JSON, or an Arrow stream for `arrow`)
+    and the query's already validated options (a JSON calibrate body's own fields take
+    precedence over them)."""
 
     kind: CallKind
     body: bytes
     profile: str | None = None
-    ellipse_confidence: float = 0.95
-    levels: tuple[float, ...] | None = None
+    ellipse_confidence: float | None = None    # None: 0.95
+    levels: tuple[float, ...] | None = None    # None: DEFAULT_LEVELS
 
 
 @dataclass(frozen=True)
 class CallOutcome:
-    """The response: status, JSON bytes, and for metrics the profile name and detections."""
+    """The response: status, bytes of `media_type`, and for metrics the profile name and the
+    detections calibrated."""
 
     status: int
     content: bytes
     profile: str | None = None
     detections: int = 0
+    media_type: str = "application/json"
 
 
 class CalibrateEngine:
@@ -62,13 +76,15 @@ class CalibrateEngine:
         try:
             if call.kind == "nuscenes":
                 return self._nuscenes(call)
+            if call.kind == "arrow":
+                return self._arrow(call)
             return self._calibrate(call)
         except (RequestValidationError, RequestError, NotFoundError) as exc:
             status, body = error_body(exc)
             return CallOutcome(status, dumps_json(body))
 
     def _calibrate(self, call: CalibrateCall) -> CallOutcome:
-        body = parse_json(CalibrateRequest, call.body)
+        body = _with_query(parse_json(CalibrateRequest, call.body), call)
         loaded = self.cache.resolve(body.profile, self.default_profile)
         rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence,
                                 levels=body.levels, max_detections=self.max_detections)
@@ -83,6 +99,54 @@ class CalibrateEngine:
         body = parse_json(NuScenesResults, call.body)
         loaded = self.cache.resolve(call.profile, self.default_profile, loc=("query", "profile"))
         levels = DEFAULT_LEVELS if call.levels is None else call.levels
-        doc, n = calibrate_results(loaded, body, call.ellipse_confidence, levels,
+        doc, n = calibrate_results(loaded, body, _confidence(call), levels,
                                    max_detections=self.max_detections)
         return CallOutcome(200, dumps_json(doc), loaded.record.name, n)
+
+    def _arrow(self, call: CalibrateCall) -> CallOutcome:
+        loaded = self.cache.resolve(call.profile, self.default_profile, loc=("query", "profile"))
+        prof = loaded.profile
+        levels = DEFAULT_LEVELS if call.levels is None else call.levels
+        try:
+            request = batch_request(read_stream(call.body, self.max_detections), prof.classes)
+        except FieldError as exc:
+            raise _batch_error(exc) from None
+        try:
+            res = prof.calibrate(**request.calibrate, ellipse_confidence=_confidence(call),
+                                 levels=levels)
+        except FieldError as exc:
+            raise _batch_error(exc, loaded.record.ref) from None
+        meta = {"profile": loaded.ref(), "classes": list(prof.classes),
+                "cov_dims": list(prof.cov_dims)}
+        out = calibrated_batch(request, res, prof.classes, _confidence(call), meta)
+        return CallOutcome(200, write_stream(out), loaded.record.name, len(res), ARROW_STREAM)
+
+
+def _confidence(call: CalibrateCall) -> float:
+    return 0.95 if call.ellipse_confidence is None else call.ellipse_confidence
+
+
+def _with_query(body: CalibrateRequest, call: CalibrateCall) -> CalibrateRequest:
+    """`body` with the query's options where the body does not set its own."""
+    query = {"profile": call.profile, "ellipse_confidence": call.ellipse_confidence,
+             "levels": None if call.levels is None else list(call.levels)}
+    missing = {k: v for k, v in query.items() if v is not None and k not in body.model_fields_set}
+    return body.model_copy(update=missing) if missing else body
+
+
+def _batch_error(exc: FieldError, ref: str | None = None) -> RequestError:
+    """The 4xx of a FieldError about an Arrow batch: at the query option, at the body (not a
+    stream; 413 for too many rows), or at the column (and row) at fault; `ref` names the
+    profile when the library refused the arrays against it."""
+    row = [] if exc.row is None else [exc.row]
+    if exc.field in ("levels", "ellipse_confidence"):
+        return RequestError(["query", exc.field, *row], str(exc))
+    if exc.field == "rows":
+        return RequestError(["body"], f"{exc} (DETCAL_MAX_DETECTIONS): split it", status=413)
+    if exc.field == "body":
+        return RequestError(["body"], str(exc))
+    column = LIBRARY_TO_COLUMN.get(exc.field, exc.field)
+    if ref is None:
+        return RequestError(["body", column, *row], str(exc))
+    return RequestError(["body", column, *row], f"profile {ref}: {exc}",
+                        kind="value_error.profile_mismatch")

@@ -58,17 +58,21 @@ def _mismatch(loc: Sequence[str | int], msg: str) -> RequestError:
     return RequestError(loc, msg, kind="value_error.profile_mismatch")
 
 
-def _label_index(label: str | int, classes: Sequence[str], loc: list[str | int]) -> int:
+def _label_index(label: str | int, classes: Sequence[str], at: tuple[int, int, Locate]
+                 ) -> int:
+    """The class index of a request's `label`; `at` = (frame, detection, locate) names it in
+    a 422 (the path is only built for an error: this runs once per detection)."""
+    fi, di, locate = at
     if isinstance(label, int):
         if label >= len(classes):
-            raise _mismatch(loc, f"label index {label} is out of range for the profile's "
-                                 f"{len(classes)} classes")
+            raise _mismatch([*locate(fi, di), "label"], f"label index {label} is out of range "
+                                                        f"for the profile's {len(classes)} classes")
         return label
     try:
         return list(classes).index(label)
     except ValueError:
-        raise _mismatch(loc, f"unknown class {label!r}; the profile's classes are "
-                             f"{list(classes)}") from None
+        raise _mismatch([*locate(fi, di), "label"], f"unknown class {label!r}; the profile's "
+                                                    f"classes are {list(classes)}") from None
 
 
 def _scores_to_logits(scores: list[float], mode: str) -> list[float]:
@@ -116,7 +120,8 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
     for fi, frame in enumerate(frames):
         ego = (frame.ego_translation or [0.0, 0.0, 0.0])[:2]
         for di, det in enumerate(frame.detections):
-            key, evidence, label = _evidence(det, locate(fi, di), prof.classes, prof.score_mode)
+            key, evidence, label = _evidence(det, (fi, di, locate), prof.classes,
+                                             prof.score_mode)
             g = groups[key]
             g.index.append(len(flat))
             g.evidence.append(evidence)
@@ -145,13 +150,13 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
     return out
 
 
-def _evidence(det: DetectionIn, loc: list[str | int], classes: Sequence[str], mode: str
+def _evidence(det: DetectionIn, at: tuple[int, int, Locate], classes: Sequence[str], mode: str
               ) -> tuple[GroupKey, list, int]:
     """Group key, class evidence and label index (-1: from the logits) of one detection."""
     n_logit_layers, label = 0, -1
     if det.score is not None:
         kind, evidence = "score", [det.score]
-        label = _label_index(det.label, classes, [*loc, "label"])  # type: ignore[arg-type]
+        label = _label_index(det.label, classes, at)  # type: ignore[arg-type]
     elif det.layer_logits is not None:
         kind, evidence, n_logit_layers = "layer_logits", det.layer_logits, len(det.layer_logits)
     elif det.logits is not None:

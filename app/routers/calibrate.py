@@ -10,6 +10,7 @@ from fastapi.responses import Response
 from app.body import body_doc, register_body_model
 from app.calibrate_calls import CalibrateCall
 from app.deps import MetricsDep, require_json
+from app.media import accept, body_media
 from app.offload import CalibrateRunner
 from app.prometheus import ServiceMetrics
 from app.schemas.calibrate import (
@@ -21,6 +22,7 @@ from app.schemas.calibrate import (
 )
 from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.nuscenes import NuScenesResults
+from calibrators.io.arrow_batch import ARROW_STREAM
 
 router = APIRouter(prefix="/v1", tags=["calibrate"],
                    responses={404: {"model": ErrorResponse}, 413: {"model": ErrorResponse},
@@ -40,16 +42,38 @@ async def _serve(runner: CalibrateRunner, metrics: ServiceMetrics, call: Calibra
     out = await runner.run(call)
     if out.profile is not None:
         metrics.detections.labels(out.profile).inc(out.detections)
-    return Response(out.content, status_code=out.status, media_type="application/json")
+    return Response(out.content, status_code=out.status, media_type=out.media_type)
 
 
-@router.post("/calibrate", response_model=CalibrateResponse,
-             openapi_extra=body_doc(register_body_model(CalibrateRequest)))
-async def calibrate(request: Request, calibrator: CalibratorDep, metrics: MetricsDep
-                    ) -> Response:
-    """Calibrate raw detections with the active (or a named) profile version."""
-    require_json(request)
-    return await _serve(calibrator, metrics, CalibrateCall("calibrate", await request.body()))
+_BINARY = {"schema": {"type": "string", "format": "binary"}}
+_CALIBRATE_BODY = body_doc(register_body_model(CalibrateRequest))
+_CALIBRATE_BODY["requestBody"]["content"][ARROW_STREAM] = _BINARY
+_QUERY_FOR_ARROW = ("For Arrow bodies; a JSON body's own field of the same name takes "
+                    "precedence.")
+
+
+@router.post("/calibrate", response_model=CalibrateResponse, openapi_extra=_CALIBRATE_BODY,
+             responses={200: {"content": {ARROW_STREAM: _BINARY}},
+                        406: {"model": ErrorResponse}})
+async def calibrate(
+    request: Request, calibrator: CalibratorDep, metrics: MetricsDep,
+    profile: Annotated[ProfileRefText | None, Query(
+        description=f"`name` or `name@version`. {_QUERY_FOR_ARROW}")] = None,
+    ellipse_confidence: Annotated[float | None, Query(
+        gt=0.0, lt=1.0, description=f"Default 0.95. {_QUERY_FOR_ARROW}")] = None,
+    levels: Annotated[list[float] | None, Query(
+        json_schema_extra=LEVELS_SCHEMA,
+        description=f"{LEVELS_TEXT} Repeat it. {_QUERY_FOR_ARROW}")] = None,
+) -> Response:
+    """Calibrate raw detections with the active (or a named) profile version: a JSON body
+    (`CalibrateRequest`), or an Arrow IPC stream of one detection per row answered with an
+    Arrow stream (columns in docs/api.md)."""
+    body = await request.body()
+    arrow = body_media(request, ARROW_STREAM) == ARROW_STREAM
+    accept(request, ARROW_STREAM if arrow else "application/json")
+    call = CalibrateCall("arrow" if arrow else "calibrate", body, profile, ellipse_confidence,
+                         None if levels is None else tuple(levels))
+    return await _serve(calibrator, metrics, call)
 
 
 @router.post("/calibrate/nuscenes", response_model=NuScenesResults,

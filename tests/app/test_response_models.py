@@ -161,6 +161,8 @@ CASES = [
     Case("POST", CAL, 413, lambda w: {"url": CAL, "json": {"frames": w.frames(10)}},
          client="small"),
     Case("POST", CAL, 415, url(CAL, content=b"{}", headers=TEXT)),
+    Case("POST", CAL, 406, lambda w: {"url": CAL, "json": {"frames": w.frames()}, "headers": {
+        "accept": "application/vnd.apache.arrow.stream"}}),
     Case("POST", CAL, 422, url(CAL, json={"frames": []})),
     Case("POST", CAL, 200, lambda w: {"url": CAL, "json": {"frames": w.frames()}},
          client="offload"),

@@ -70,10 +70,16 @@ def fenced_blocks(text: str) -> list[Block]:
     return blocks
 
 
-def python_blocks(path: Path) -> list[Block]:
-    """The ```python blocks of the markdown file `path`."""
+#: A python block that reads this needs a live server: tests/e2e/test_docs_tour.py runs it.
+SERVER_MARK = 'os.environ["DETCAL"]'
+
+
+def python_blocks(path: Path, server: bool = False) -> list[Block]:
+    """The ```python blocks of the markdown file `path`: those that run on their own, or with
+    `server` those that call a live server (`SERVER_MARK`)."""
     text = path.read_text(encoding="utf-8")
-    return [b for b in fenced_blocks(text) if b.lang in ("python", "py", "python3")]
+    return [b for b in fenced_blocks(text) if b.lang in ("python", "py", "python3")
+            and (SERVER_MARK in b.code) == server]
 
 
 def _rel(path: Path) -> str:

@@ -37,7 +37,7 @@ import httpx
 import numpy as np
 import pytest
 
-from tests.docs.test_examples import fenced_blocks
+from tests.docs.test_examples import DOCS, fenced_blocks, python_blocks
 from tests.e2e.conftest import ROOT, Server, _detcal, serving, wait_job
 
 pytestmark = pytest.mark.e2e
@@ -392,6 +392,24 @@ def test_readme_tour_and_api_examples_run_in_order(fresh: BootstrapServer, clien
     assert tour.step1 is not None
     run_step(tour.step1, tour, used)          # step 1 once more, after everything
     print("\n".join(tour.ran))
+
+
+def test_server_python_examples_run(fresh: BootstrapServer, monkeypatch, tmp_path):
+    """The docs' python blocks that call the server (`os.environ["DETCAL"]`: e.g. the Arrow
+    client of docs/api.md) run against the fresh server, each doc's blocks in one namespace."""
+    docs = {doc: python_blocks(doc, server=True) for doc in DOCS}
+    docs = {doc: blocks for doc, blocks in docs.items() if blocks}
+    assert API_MD in docs, "docs/api.md has no python client example"
+    monkeypatch.setenv("DETCAL", fresh.url)
+    monkeypatch.chdir(tmp_path)
+    for doc, blocks in docs.items():
+        namespace: dict[str, object] = {"__name__": "__main__"}
+        for block in blocks:
+            source = "\n" * (block.line - 1) + block.code   # line numbers are the markdown's
+            exec(compile(source, str(doc), "exec"), namespace)
+        if doc == API_MD:   # the Arrow client's answer
+            out = namespace["out"]
+            assert out.num_rows == 300 and "ellipse_0.9" in out.column_names  # type: ignore[attr-defined]
 
 
 def _resolve(spec: dict, node: dict) -> dict:

@@ -1,0 +1,38 @@
+"""Content negotiation of the calibrate routes: the body's media type (415 otherwise) and the
+`Accept` header (406 when it refuses the one media type a route answers a body with)."""
+
+from __future__ import annotations
+
+from fastapi import HTTPException, Request, status
+
+
+def _media(value: str) -> str:
+    return value.split(";", 1)[0].strip().lower()
+
+
+def body_media(request: Request, *others: str) -> str:
+    """`application/json` (also any `+json` type) or one of `others`; 415 naming the
+    Content-Type otherwise."""
+    ctype = request.headers.get("content-type", "")
+    media = _media(ctype)
+    if media == "application/json" or media.endswith("+json"):
+        return "application/json"
+    if media in others:
+        return media
+    allowed = " or ".join(["application/json", *others])
+    raise HTTPException(status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+                        f"Content-Type must be {allowed}, got {ctype or 'none'!r}")
+
+
+def accept(request: Request, media: str) -> None:
+    """Refuse (406) a request whose `Accept` header excludes `media`, the type its body's
+    format is answered in (no header, `*/*` and `type/*` accept it)."""
+    header = request.headers.get("accept", "")
+    if not header.strip():
+        return
+    wanted = [_media(part) for part in header.split(",")]
+    kind = media.split("/", 1)[0]
+    if not any(w in (media, "*/*", f"{kind}/*") for w in wanted):
+        raise HTTPException(status.HTTP_406_NOT_ACCEPTABLE,
+                            f"this body is answered as {media}, which Accept {header!r} "
+                            f"refuses: send the body as the format you want back")

@@ -1,0 +1,253 @@
+"""Detections as an Apache Arrow record batch, and calibrated detections back (the binary
+transport of POST /v1/calibrate; columns in docs/api.md).
+
+A request batch has one row per detection:
+
+- `frame_id` (string or integer, required) and `id` (any type, optional): echoed back;
+- class evidence, exactly one of: `logits` (list of floats `[C']`), `layer_logits` (list of
+  lists `[L][C']`), or `score` (float) with `label` (class name or index);
+- `box` (list `[9]` or `[7]`: no velocity) or `layer_boxes` (list of lists `[L][9]`, the last
+  is the final box);
+- `covariance` (list `[D·D]`, row-major over the profile's `cov_dims`, optional) and
+  `ego_translation` (list `[3]` or `[2]`, optional; default the origin).
+
+Lists may be fixed-size or variable-size Arrow lists, but every row of a column must have the
+same length; numbers may be any integer or float type and no value may be null. A column that
+breaks these rules is a `FieldError` naming it (and the row, where one is at fault). The
+response batch (`calibrated_batch`) has `frame_id`, `id` (when given), `label`, `label_index`,
+`score`, `score_raw`, `class_scores` (when the profile gives them), `covariance [D·D]`,
+`distance`, `ellipse` (a struct at the ellipse confidence) and one struct `ellipse_<q>` per
+requested level (`semi_major`, `semi_minor` — null when unbounded —, `angle`), plus
+`region_group` for conformal regions; its schema metadata names the profile.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+from calibrators.exceptions import FieldError
+from calibrators.serving import CalibratedDetections
+
+ARROW_STREAM = "application/vnd.apache.arrow.stream"
+EVIDENCE_COLUMNS = ("logits", "layer_logits", "score")
+KNOWN_COLUMNS = frozenset({"frame_id", "id", *EVIDENCE_COLUMNS, "label", "box", "layer_boxes",
+                           "covariance", "ego_translation"})
+#: Library argument of `CalibrationProfile.calibrate` -> request column.
+LIBRARY_TO_COLUMN = {"logits": "logits", "layer_logits": "layer_logits", "scores": "score",
+                     "labels": "label", "boxes": "box", "distances": "box",
+                     "covariances": "covariance", "layer_boxes": "layer_boxes",
+                     "ego_xy": "ego_translation"}
+
+
+@dataclass
+class BatchRequest:
+    """A request batch as library arrays: `calibrate` are the keyword arguments of
+    `CalibrationProfile.calibrate` (without levels), `echo` the columns sent back as they
+    came (`frame_id`, `id`)."""
+
+    calibrate: dict[str, np.ndarray]
+    echo: dict[str, pa.Array]
+
+    def __len__(self) -> int:
+        return len(next(iter(self.echo.values())))
+
+
+def read_stream(data: bytes, max_rows: int | None = None) -> pa.RecordBatch:
+    """The one record batch of an Arrow IPC stream (several batches are concatenated); a
+    FieldError("body") if `data` is not an Arrow stream, or ("body", row count) above
+    `max_rows` (checked from the batch headers before any column is read)."""
+    try:
+        reader = pa.ipc.open_stream(pa.BufferReader(data))
+        batches = list(reader)
+    except (pa.ArrowInvalid, pa.ArrowException, OSError) as exc:
+        raise FieldError("body", f"not an Arrow IPC stream: {exc}") from None
+    rows = sum(b.num_rows for b in batches)
+    if max_rows is not None and rows > max_rows:
+        raise FieldError("rows", f"the batch has {rows} rows (detections); at most {max_rows} "
+                                 f"are calibrated per request")
+    if not batches:
+        raise FieldError("body", "the Arrow stream holds no record batch")
+    if len(batches) == 1:
+        return batches[0]
+    table = pa.Table.from_batches(batches, schema=reader.schema).combine_chunks()
+    return table.to_batches()[0] if table.num_rows else batches[0]
+
+
+def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> BatchRequest:
+    """The library arrays of a request `batch` (module docstring); FieldError naming the
+    column (and `row`) that breaks the rules."""
+    names = batch.schema.names
+    unknown = sorted(set(names) - KNOWN_COLUMNS)
+    if unknown:
+        raise FieldError(unknown[0], f"unknown column {unknown[0]!r}; the columns are "
+                                     f"{sorted(KNOWN_COLUMNS)}")
+    if len(set(names)) != len(names):
+        raise FieldError("body", f"repeated column names: {names}")
+    if "frame_id" not in names:
+        raise FieldError("frame_id", "the batch needs a frame_id column (string or integer)")
+    frame = batch.column("frame_id")
+    if not (pa.types.is_string(frame.type) or pa.types.is_large_string(frame.type)
+            or pa.types.is_integer(frame.type)):
+        raise FieldError("frame_id", f"frame_id must be strings or integers, got {frame.type}")
+    _no_nulls("frame_id", frame)
+    evidence = [c for c in EVIDENCE_COLUMNS if c in names]
+    if len(evidence) != 1:
+        raise FieldError("logits", f"give exactly one of the columns {list(EVIDENCE_COLUMNS)}; "
+                                   f"got {evidence or 'none'}")
+    kwargs: dict[str, np.ndarray] = {}
+    if evidence[0] == "score":
+        kwargs["scores"] = _numbers("score", batch.column("score"), ())
+        if "label" not in names:
+            raise FieldError("label", "a score column needs a label column (name or index)")
+        kwargs["labels"] = _labels(batch.column("label"), classes)
+    elif evidence[0] == "logits":
+        kwargs["logits"] = _numbers("logits", batch.column("logits"), (None,))
+    else:
+        kwargs["layer_logits"] = _numbers("layer_logits", batch.column("layer_logits"),
+                                          (None, None))
+    if "label" in names and evidence[0] != "score":
+        raise FieldError("label", "label goes with score; with logits the label is their "
+                                  "arg-max")
+    if "layer_boxes" in names:
+        kwargs["layer_boxes"] = _numbers("layer_boxes", batch.column("layer_boxes"), (None, 9))
+    if "box" in names:
+        box = _numbers("box", batch.column("box"), (None,))
+        if box.shape[1] not in (7, 9):
+            raise FieldError("box", f"box must have 9 values (x, y, z, w, l, h, yaw, vx, vy) "
+                                    f"or 7 (no velocity), got {box.shape[1]}")
+        kwargs["boxes"] = box if box.shape[1] == 9 else np.pad(box, ((0, 0), (0, 2)))
+    elif "layer_boxes" in kwargs:
+        kwargs["boxes"] = kwargs["layer_boxes"][:, -1]
+    else:
+        raise FieldError("box", "the batch needs a box (or layer_boxes) column")
+    if "covariance" in names:
+        flat = _numbers("covariance", batch.column("covariance"), (None,))
+        dim = int(round(np.sqrt(flat.shape[1])))
+        if dim * dim != flat.shape[1]:
+            raise FieldError("covariance", f"covariance rows must hold D·D values (row-major "
+                                           f"[D, D]), got {flat.shape[1]}")
+        kwargs["covariances"] = flat.reshape(len(flat), dim, dim)
+    if "ego_translation" in names:
+        ego = _numbers("ego_translation", batch.column("ego_translation"), (None,))
+        if ego.shape[1] not in (2, 3):
+            raise FieldError("ego_translation", f"ego_translation must have 3 (or 2) values, "
+                                                f"got {ego.shape[1]}")
+        kwargs["ego_xy"] = np.ascontiguousarray(ego[:, :2])
+    echo = {"frame_id": frame}
+    if "id" in names:
+        echo["id"] = batch.column("id")
+    return BatchRequest(kwargs, echo)
+
+
+def calibrated_batch(request: BatchRequest, res: CalibratedDetections, classes: Sequence[str],
+                     confidence: float, metadata: Mapping[str, Any]) -> pa.RecordBatch:
+    """The response batch of `res` (module docstring); `metadata` is stored as JSON under
+    the schema key `detcal`."""
+    n = len(res)
+    columns: dict[str, pa.Array] = dict(request.echo)
+    columns["label"] = pa.array(np.asarray(classes, dtype=object)[res.labels], pa.string())
+    columns["label_index"] = pa.array(res.labels.astype(np.int32))
+    columns["score"] = pa.array(res.scores)
+    columns["score_raw"] = pa.array(res.scores_raw)
+    if res.class_scores is not None:
+        columns["class_scores"] = _fixed(res.class_scores)
+    columns["covariance"] = _fixed(res.covariances.reshape(n, -1))
+    columns["distance"] = pa.array(res.distances)
+    if res.ellipses is not None:
+        columns["ellipse"] = _ellipse_struct(res.ellipses)
+    for level, region in res.regions.items():
+        columns[f"ellipse_{float(level)!r}"] = _ellipse_struct(region)
+    if res.region_groups is not None:
+        columns["region_group"] = pa.array(res.region_groups, pa.string())
+    meta = {"confidence": confidence, "levels": [float(q) for q in res.regions],
+            "region_method": res.region_method, "cov_source": res.cov_source, **metadata}
+    schema = pa.schema([pa.field(k, v.type) for k, v in columns.items()],
+                       metadata={"detcal": json.dumps(meta)})
+    return pa.RecordBatch.from_arrays(list(columns.values()), schema=schema)
+
+
+def write_stream(batch: pa.RecordBatch) -> bytes:
+    """`batch` as an Arrow IPC stream."""
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, batch.schema) as writer:
+        writer.write_batch(batch)
+    return sink.getvalue().to_pybytes()
+
+
+# -- columns ------------------------------------------------------------------------------------
+
+
+def _no_nulls(name: str, arr: pa.Array) -> None:
+    if arr.null_count:
+        row = int(pc.index(pc.is_null(arr), True).as_py())
+        raise FieldError(name, f"{name} has a null at row {row}", row=row)
+
+
+def _numbers(name: str, arr: pa.Array, shape: tuple[int | None, ...]) -> np.ndarray:
+    """Float64 `[N, *shape]` of a number column (`()`) or of (nested) lists; None in `shape`
+    is any length, the same in every row."""
+    _no_nulls(name, arr)
+    values, dims = arr, []
+    for want in shape:
+        if not (pa.types.is_list(values.type) or pa.types.is_large_list(values.type)
+                or pa.types.is_fixed_size_list(values.type)):
+            raise FieldError(name, f"{name} must be a list column{'s of lists' * (len(shape) > 1)}"
+                                   f" of numbers, got {arr.type}")
+        if pa.types.is_fixed_size_list(values.type):
+            width = values.type.list_size
+            values = values.flatten()
+        else:
+            lengths = pc.list_value_length(values).to_numpy(zero_copy_only=False)
+            width = int(lengths[0]) if len(lengths) else 0
+            if (lengths != width).any():
+                row = int(np.argmax(lengths != width))
+                raise FieldError(name, f"every row of {name} must have the same length: row "
+                                       f"{row} has {int(lengths[row])}, row 0 has {width}",
+                                 row=row)
+            values = values.flatten()
+        if want is not None and width != want:
+            raise FieldError(name, f"{name} rows must hold {want} values, got {width}")
+        _no_nulls(name, values)
+        dims.append(width)
+    if not (pa.types.is_floating(values.type) or pa.types.is_integer(values.type)):
+        raise FieldError(name, f"{name} must hold numbers (integer or float), got "
+                               f"{values.type}")
+    out = values.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
+    return out.reshape(len(arr), *dims)
+
+
+def _labels(arr: pa.Array, classes: Sequence[str]) -> np.ndarray:
+    """Class indices `[N]` of a label column of names (or indices, checked by the library)."""
+    _no_nulls("label", arr)
+    if pa.types.is_integer(arr.type):
+        return arr.to_numpy(zero_copy_only=False).astype(np.int64)
+    if not (pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type)
+            or pa.types.is_dictionary(arr.type)):
+        raise FieldError("label", f"label must be class names or indices, got {arr.type}")
+    index = pc.index_in(arr.cast(pa.string()), value_set=pa.array(list(classes), pa.string()))
+    if index.null_count:
+        row = int(pc.index(pc.is_null(index), True).as_py())
+        raise FieldError("label", f"unknown class {arr[row].as_py()!r} at row {row}; the "
+                                  f"profile's classes are {list(classes)}", row=row)
+    return index.to_numpy(zero_copy_only=False).astype(np.int64)
+
+
+def _fixed(values: np.ndarray) -> pa.FixedSizeListArray:
+    """`[N, W]` float64 as a fixed-size list column."""
+    flat = np.ascontiguousarray(values, dtype=np.float64)
+    return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
+
+
+def _ellipse_struct(el: Any) -> pa.StructArray:
+    """semi_major, semi_minor (null where unbounded: inf) and angle of ellipses `[N]`."""
+    major, minor = (np.asarray(a, dtype=np.float64) for a in (el.semi_major, el.semi_minor))
+    fields = [pa.array(a, mask=np.isinf(a)) for a in (major, minor)]
+    return pa.StructArray.from_arrays([*fields, pa.array(np.asarray(el.angle, np.float64))],
+                                      names=["semi_major", "semi_minor", "angle"])
