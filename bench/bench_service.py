@@ -1,5 +1,6 @@
-"""Latency and throughput of POST /v1/calibrate (one 300-detection frame) against a bare
-FastAPI echo endpoint receiving the same JSON, both real uvicorn processes on loopback.
+"""Latency and throughput of POST /v1/calibrate (one 300-detection frame) as JSON and as an
+Arrow stream, against a bare FastAPI echo endpoint receiving the same JSON, all real uvicorn
+processes on loopback. The JSON and Arrow answers are checked bit-equal first.
 
     .venv/bin/python -m bench.bench_service [--requests 300] [--concurrency 4]
 
@@ -60,8 +61,49 @@ def _payload(n: int = 300) -> tuple[dict, str]:
     return {"frames": [{"frame_id": "bench", "detections": dets}]}, profile.to_json()
 
 
-def _measure(client: httpx.Client, url: str, body: bytes, n: int, concurrency: int) -> dict:
-    headers = {"content-type": "application/json"}
+def _arrow(payload: dict) -> bytes:
+    """The frame of `payload` as an Arrow IPC stream (float64 columns, as JSON parses)."""
+    import pyarrow as pa
+
+    from calibrators.io.arrow_batch import write_stream
+
+    dets = payload["frames"][0]["detections"]
+
+    def col(key: str) -> pa.Array:
+        a = np.array([np.ravel(d[key]) for d in dets], dtype=np.float64)
+        return pa.FixedSizeListArray.from_arrays(pa.array(a.ravel()), a.shape[1])
+
+    return write_stream(pa.record_batch({
+        "frame_id": pa.array(["bench"] * len(dets)), "id": pa.array([d["id"] for d in dets]),
+        "logits": col("logits"), "box": col("box"), "covariance": col("covariance")}))
+
+
+def _bit_equal(client: httpx.Client, url: str, body: bytes, arrow: bytes) -> bool:
+    """Whether the JSON and the Arrow answers carry the same floats, bit for bit."""
+    import pyarrow as pa
+
+    from calibrators.io.arrow_batch import ARROW_STREAM
+
+    dets = client.post(url, content=body, headers={"content-type": "application/json"}
+                       ).json()["frames"][0]["detections"]
+    r = client.post(url, content=arrow, headers={"content-type": ARROW_STREAM})
+    r.raise_for_status()
+    table = pa.ipc.open_stream(r.content).read_all()
+    json_cols = {"score": [d["score"] for d in dets], "score_raw": [d["score_raw"] for d in dets],
+                 "covariance": [np.ravel(d["covariance"]).tolist() for d in dets],
+                 "ellipse": [[d["ellipse"][k] for k in ("semi_major", "semi_minor", "angle")]
+                             for d in dets]}
+    arrow_cols = {"score": table["score"].to_pylist(),
+                  "score_raw": table["score_raw"].to_pylist(),
+                  "covariance": table["covariance"].to_pylist(),
+                  "ellipse": [list(e.values()) for e in table["ellipse"].to_pylist()]}
+    return all(np.array_equal(np.asarray(json_cols[k]), np.asarray(arrow_cols[k]))
+               for k in json_cols)
+
+
+def _measure(client: httpx.Client, url: str, body: bytes, n: int, concurrency: int,
+             media: str = "application/json") -> dict:
+    headers = {"content-type": media}
     for _ in range(20):                                   # warm-up
         client.post(url, content=body, headers=headers).raise_for_status()
     server, latency = [], []
@@ -93,9 +135,11 @@ def main(argv: list[str] | None = None) -> int:
 
     from app.settings import Settings
     from app.store import Store
+    from calibrators.io.arrow_batch import ARROW_STREAM
 
     payload, profile_json = _payload()
     body = json.dumps(payload).encode()
+    arrow = _arrow(payload)
     procs = []
     with tempfile.TemporaryDirectory() as tmp:
         settings = Settings(data_dir=Path(tmp) / "data")
@@ -118,27 +162,36 @@ def main(argv: list[str] | None = None) -> int:
             with httpx.Client(timeout=30.0) as client:
                 echo = _measure(client, f"http://127.0.0.1:{p_echo}/echo", body,
                                 args.requests, args.concurrency)
-                cal = _measure(client, f"http://127.0.0.1:{p_app}/v1/calibrate", body,
-                               args.requests, args.concurrency)
+                url = f"http://127.0.0.1:{p_app}/v1/calibrate"
+                same = _bit_equal(client, url, body, arrow)
+                cal = _measure(client, url, body, args.requests, args.concurrency)
+                fast = _measure(client, url, arrow, args.requests, args.concurrency, ARROW_STREAM)
         finally:
             for p in procs:
                 p.terminate()
                 p.wait(10)
     ratio = cal["server_p50"] / echo["server_p50"]
     lat_ratio = cal["latency_p50"] / echo["latency_p50"]
+    n_det = len(payload["frames"][0]["detections"])
     table = (
-        f"POST /v1/calibrate, one frame of 300 detections (logits [10], box [9], covariance "
-        f"2x2; request {len(body) / 1024:.0f} KiB), {args.requests} sequential requests, then "
+        f"POST /v1/calibrate, one frame of {n_det} detections (logits [10], box [9], covariance "
+        f"2x2), as JSON (request {len(body) / 1024:.0f} KiB) and as an Arrow stream ("
+        f"{len(arrow) / 1024:.0f} KiB), {args.requests} sequential requests, then "
         f"{args.requests} with {args.concurrency} concurrent clients; reference: a bare FastAPI "
-        f"endpoint that parses the same JSON and echoes it. Both are uvicorn processes on "
-        f"loopback, one worker each.\n\n"
+        f"endpoint that parses the same JSON and echoes it. All are uvicorn processes on "
+        f"loopback, one worker each; the clients (httpx) run on the same 2 cores.\n\n"
         "| endpoint | server p50 ms | server p95 ms | latency p50 ms | latency p95 ms | "
-        "throughput req/s |\n|---|---|---|---|---|---|\n"
+        "throughput req/s | detections/s |\n|---|---|---|---|---|---|---|\n"
         + "".join(f"| {name} | {m['server_p50']:.2f} | {m['server_p95']:.2f} | "
-                  f"{m['latency_p50']:.2f} | {m['latency_p95']:.2f} | {m['rps']:.1f} |\n"
-                  for name, m in (("/v1/calibrate", cal), ("echo (reference)", echo)))
-        + f"\n**Ratio calibrate / echo: {ratio:.2f}× server time (p50), {lat_ratio:.2f}× "
-          f"client latency (p50)** (target ≤ 1.3× server time).\n")
+                  f"{m['latency_p50']:.2f} | {m['latency_p95']:.2f} | {m['rps']:.1f} | "
+                  f"{m['rps'] * n_det:,.0f} |\n"
+                  for name, m in (("/v1/calibrate JSON", cal), ("/v1/calibrate Arrow", fast),
+                                  ("echo (reference)", echo)))
+        + f"\n**Ratio JSON calibrate / echo: {ratio:.2f}× server time (p50)** (target ≤ 1.0×), "
+          f"{lat_ratio:.2f}× client latency (p50). **Arrow / JSON: "
+          f"{cal['server_p50'] / fast['server_p50']:.1f}× less server time (p50), "
+          f"{fast['rps'] / cal['rps']:.1f}× the detections/s** (target ≥ 5×). Calibrated "
+          f"values of the two formats bit-equal: {'yes' if same else 'NO'}.\n")
     from bench._report import report
 
     return report("service", table)
