@@ -119,13 +119,24 @@ def check_covariances(name: str, cov: np.ndarray, n: int | None = None, dim: int
     if asym.any():
         i = int(np.argmax(asym))
         raise FieldError(name, f"{name}[{i}] is not symmetric", row=i)
-    eig_min = np.linalg.eigvalsh(cov)[:, 0]
+    eig_min = _smallest_eigenvalue(cov)
     bad = eig_min < -tol
     if bad.any():
         i = int(np.argmax(bad))
         raise FieldError(name, f"{name}[{i}] is not positive semi-definite (smallest "
                                f"eigenvalue {eig_min[i]:.3g}, allowed rounding "
                                f"{-tol[i]:.3g})", row=i)
+
+
+def _smallest_eigenvalue(cov: np.ndarray) -> np.ndarray:
+    """λ_min `[N]` of symmetric `[N, D, D]`: closed form for D = 2 ((a + c)/2 - hypot((a - c)/2,
+    b), the common case, ~10x faster than LAPACK on small batches), else `eigvalsh`."""
+    if cov.shape[1] == 2:
+        a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+        return 0.5 * (a + c) - np.hypot(0.5 * (a - c), b)
+    if cov.shape[1] == 1:
+        return cov[:, 0, 0]
+    return np.linalg.eigvalsh(cov)[:, 0]
 
 
 def check_choice(name: str, value: str, choices: Sequence[str]) -> None:
