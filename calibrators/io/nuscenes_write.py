@@ -154,7 +154,9 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
     columns = []
     for level, region in calibrated.regions.items():
         key = str(float(level))
-        unbounded = np.isinf(np.asarray(calibrated.region_radii[level]).reshape(n))
+        radii = calibrated.region_radii.get(level)
+        unbounded = (np.zeros(n, dtype=bool) if radii is None
+                     else np.isinf(np.asarray(radii, dtype=np.float64).reshape(n)))
         arrays = [np.asarray(a, dtype=np.float64).reshape(n) for a in region]
         for name, arr in zip(("semi_major", "semi_minor", "angle"), arrays, strict=True):
             check_finite(f"ellipses[{key!r}].{name}", np.where(unbounded, 0.0, arr))

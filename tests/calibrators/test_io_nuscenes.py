@@ -370,6 +370,17 @@ def test_ellipses_json_refuses_non_finite_semi_axes():
         ellipses_json(served)
 
 
+def test_ellipses_json_writes_unbounded_regions_as_null_axes():
+    served = _served()
+    served.region_radii = {q: np.ones(3) for q in served.regions}
+    served.region_radii[0.9][1] = np.inf
+    served.regions[0.9].semi_major[1] = served.regions[0.9].semi_minor[1] = np.inf
+    rows = ellipses_json(served)
+    assert rows[1]["0.9"]["semi_major"] is None and rows[1]["0.9"]["semi_minor"] is None
+    assert rows[1]["0.9"]["angle"] == 0.3 and rows[0]["0.9"]["semi_major"] == 2.0
+    json.dumps(rows, allow_nan=False)
+
+
 def test_calibrate_results_document_writes_ellipses():
     doc = results_document()
     doc["results"]["s1"][0]["ellipses"] = {"0.3": {"semi_major": 9.0}}   # replaced, not merged
