@@ -8,6 +8,7 @@ BENCHMARKS = (
     "bench.bench_detectors",
     "bench.bench_service",
     "bench.bench_health",
+    "bench.bench_steady",
 )
 
 if __name__ == "__main__":
