@@ -68,8 +68,18 @@ def dumps_json(body: Any) -> bytes:
     and scalars directly; pydantic models through pydantic-core). A non-finite float never
     reaches it from the calibrate path (the library refuses or nulls them first); orjson
     would write it as null, never as the non-JSON `NaN` / `Infinity`."""
-    return orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY,
-                        default=pydantic_core.to_jsonable_python)
+    try:
+        return orjson.dumps(body, option=orjson.OPT_SERIALIZE_NUMPY,
+                            default=pydantic_core.to_jsonable_python)
+    except orjson.JSONEncodeError:   # an integer beyond 64 bits, echoed from a client's meta
+        return pydantic_core.to_json(body, inf_nan_mode="null", fallback=_numpy_plain)
+
+
+def _numpy_plain(value: Any) -> Any:
+    """A numpy array or scalar as plain Python (the fallback serialiser's numpy support)."""
+    if hasattr(value, "tolist"):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
 def json_response(body: Any, status_code: int = 200) -> Response:

@@ -104,3 +104,14 @@ def test_small_bodies_stay_in_the_server_process(client, dump_given, detection) 
     body = {"frames": [{"frame_id": "f", "detections": [detection(dump_given, 0)]}]}
     assert client.post(CAL, json=body).status_code == 200
     assert client.app.state.calibrator.worker_pids() == []
+
+
+def test_dumps_json_is_strict_for_huge_integers_numpy_and_non_finite() -> None:
+    import numpy as np
+
+    from app.body import dumps_json
+
+    out = dumps_json({"n": 10**30, "a": np.arange(2.0), "s": np.float32(2.5),
+                      "x": float("inf")})
+    assert out == b'{"n":1000000000000000000000000000000,"a":[0.0,1.0],"s":2.5,"x":null}'
+    assert dumps_json({"a": np.arange(2.0)}) == b'{"a":[0.0,1.0]}'
