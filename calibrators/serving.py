@@ -129,6 +129,8 @@ def _check_finite(res: CalibratedDetections, given_cov: bool,
     no covariance, else at its covariance. An unbounded region (infinite radius: a level its
     conformal group cannot certify) is not an overflow."""
     n = len(res)
+    if n == 0:
+        return
     served = [(res.scores, None), (res.distances, None), (res.covariances, None),
               *((a, confidence_radii) for a in res.ellipses or ()),
               *((a, res.region_radii.get(q)) for q, region in res.regions.items()

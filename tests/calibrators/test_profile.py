@@ -238,3 +238,14 @@ def test_calibrate_layers_and_none_sources_refuse_wrong_inputs():
                                                     boxes=np.ones((3, 7)))
     with pytest.raises(ValueError, match="boxes is required"):
         random_profile(cov_source="none").calibrate(logits=np.zeros((3, 4)))
+
+
+def test_no_detections_calibrate_to_empty_arrays():
+    from calibrators.fit import fit_profile
+    from calibrators.synthetic import synthetic_dump
+
+    profile = fit_profile(synthetic_dump(n_frames=10, seed=1), cov_source="given")
+    res = profile.calibrate(logits=np.zeros((0, 10)), boxes=np.zeros((0, 9)),
+                            covariances=np.zeros((0, 2, 2)), levels=[0.5, 0.9])
+    assert len(res) == 0 and res.covariances.shape == (0, 2, 2)
+    assert res.regions[0.9].semi_major.shape == (0,)
