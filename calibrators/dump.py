@@ -16,6 +16,12 @@ validates it; every error names the key. Shapes:
     ego_translation  [F, 3] | None  ego position per frame; None = boxes are ego-frame
     det_cov          [N, D, D] | None  box covariance over cov_dims
     cov_dims         [D]  str     default ("x", "y")
+    det_hyp_boxes    [N, H, 9] | None  final-layer box of each of H group regression heads
+                                  (seed 001's multi-hypothesis output), same layout as det_boxes
+    det_hyp_scores   [N, H] | None     group score of each hypothesis (summed class
+                                  probabilities of the group's classes), >= 0
+
+The two hypothesis arrays come together or not at all.
 """
 
 from __future__ import annotations
@@ -33,6 +39,7 @@ from calibrators.checks import (
     check_index,
     check_length,
 )
+from calibrators.exceptions import FieldError
 from calibrators.scores import predict
 from calibrators.vocab import BOX_FIELDS, SCORE_MODES
 
@@ -53,6 +60,8 @@ class Dump:
     ego_translation: np.ndarray | None = None
     det_cov: np.ndarray | None = None
     cov_dims: tuple[str, ...] = field(default=("x", "y"))
+    det_hyp_boxes: np.ndarray | None = None
+    det_hyp_scores: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -116,6 +125,32 @@ class Dump:
             cov = as_float_array("det_cov", self.det_cov, ndim=3)
             check_covariances("det_cov", cov, n=n, dim=len(cov_dims))
             set_(self, "det_cov", cov)
+        self._check_hypotheses(n)
+
+    def _check_hypotheses(self, n: int) -> None:
+        """Validate the optional `det_hyp_boxes [N, H, 9]` / `det_hyp_scores [N, H]` pair."""
+        boxes, scores = self.det_hyp_boxes, self.det_hyp_scores
+        if boxes is None and scores is None:
+            return
+        if boxes is None or scores is None:
+            missing = "det_hyp_boxes" if boxes is None else "det_hyp_scores"
+            given = "det_hyp_scores" if boxes is None else "det_hyp_boxes"
+            raise FieldError(missing, f"{given} is given without {missing}; the hypothesis "
+                                      "arrays come together")
+        boxes = as_float_array("det_hyp_boxes", boxes, ndim=3)
+        if boxes.shape[0] != n or boxes.shape[2:] != (9,) or boxes.shape[1] < 1:
+            raise FieldError("det_hyp_boxes", f"det_hyp_boxes must have shape [{n}, H, 9] "
+                                              f"with H >= 1, got {boxes.shape}")
+        scores = as_float_array("det_hyp_scores", scores, ndim=2)
+        if scores.shape != boxes.shape[:2]:
+            raise FieldError("det_hyp_scores", f"det_hyp_scores must have shape "
+                                               f"[{n}, {boxes.shape[1]}], got {scores.shape}")
+        if (scores < 0).any():
+            row = int(np.argwhere(scores < 0)[0][0])
+            raise FieldError("det_hyp_scores", f"det_hyp_scores has a negative group score "
+                                               f"at row {row}", row=row)
+        object.__setattr__(self, "det_hyp_boxes", boxes)
+        object.__setattr__(self, "det_hyp_scores", scores)
 
     # -- derived views -------------------------------------------------------------------
     @property
@@ -129,6 +164,11 @@ class Dump:
     @property
     def n_frames(self) -> int:
         return len(self.frame_ids)
+
+    @property
+    def n_hypotheses(self) -> int:
+        """H, the box hypotheses per detection (0 without `det_hyp_boxes`)."""
+        return 0 if self.det_hyp_boxes is None else int(self.det_hyp_boxes.shape[1])
 
     @cached_property
     def det_labels(self) -> np.ndarray:
@@ -179,7 +219,24 @@ class Dump:
             det_logits=self.det_logits[d],
             det_boxes=self.det_boxes[d],
             det_cov=None if self.det_cov is None else self.det_cov[d],
+            det_hyp_boxes=None if self.det_hyp_boxes is None else self.det_hyp_boxes[d],
+            det_hyp_scores=None if self.det_hyp_scores is None else self.det_hyp_scores[d],
             gt_frame=new_index[self.gt_frame[g]],
             gt_labels=self.gt_labels[g],
             gt_boxes=self.gt_boxes[g],
         )
+
+    def select_detections(self, keep: np.ndarray) -> Dump:
+        """A new dump with only the detections where the boolean `[N]` mask `keep` is True
+        (every per-detection array, the hypotheses included); frames and ground truth stay."""
+        keep = np.asarray(keep, dtype=bool)
+        if keep.shape != (self.n_detections,):
+            raise ValueError(f"keep must have shape [{self.n_detections}], got {keep.shape}")
+
+        def take(arr: np.ndarray | None) -> np.ndarray | None:
+            return None if arr is None else arr[keep]
+
+        return replace(self, det_frame=self.det_frame[keep], det_logits=self.det_logits[keep],
+                       det_boxes=self.det_boxes[keep], det_cov=take(self.det_cov),
+                       det_hyp_boxes=take(self.det_hyp_boxes),
+                       det_hyp_scores=take(self.det_hyp_scores))

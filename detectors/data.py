@@ -92,13 +92,16 @@ class TrainSamples(torch.utils.data.Dataset):
     Sample k uses seed `seeds[perm_e[k % n]]` with epoch e = k // n and `perm_e` a permutation
     drawn from (`seed`, e), and augmentation drawn from (`seed`, k): resuming at any k gives
     the very same data as an uninterrupted run. `extra_objects` (mean extra objects per
-    class, see `detectors.sim.make_scene`) over-samples rare classes.
+    class, see `detectors.sim.make_scene`) over-samples rare classes for the samples before
+    `extra_until` (default: all); later samples show the world's own frequencies (seed 001's
+    fade-out of ground-truth sampling for the last part of training).
     """
 
     def __init__(self, sensor: str, seeds: Sequence[int], features: Sequence[str],
                  half_extent: float, seed: int = 0, n_samples: int = 1 << 30,
                  augment_data: bool = True,
-                 extra_objects: Mapping[str, float] | None = None) -> None:
+                 extra_objects: Mapping[str, float] | None = None,
+                 extra_until: int | None = None) -> None:
         self.sensor = sensor
         self.seeds = np.asarray(list(seeds), dtype=np.int64)
         self.features = tuple(features)
@@ -107,6 +110,7 @@ class TrainSamples(torch.utils.data.Dataset):
         self.n_samples = n_samples
         self.augment_data = augment_data
         self.extra_objects = dict(extra_objects) if extra_objects else None
+        self.extra_until = extra_until
         self._perm: dict[int, np.ndarray] = {}
 
     def __len__(self) -> int:
@@ -119,11 +123,17 @@ class TrainSamples(torch.utils.data.Dataset):
             self._perm = {epoch: np.random.default_rng([self.seed, epoch]).permutation(n)}
         return int(self.seeds[self._perm[epoch][k % n]])
 
+    def extra_for(self, k: int) -> dict[str, float] | None:
+        """The object sampling of sample `k` (None once it has faded out)."""
+        if self.extra_until is not None and k >= self.extra_until:
+            return None
+        return self.extra_objects
+
     def __getitem__(self, k: int) -> Sample:
         from detectors.sim import make_frame
 
-        sample = frame_sample(make_frame(self.scene_seed(k), self.sensor,
-                                             self.extra_objects), self.half_extent)
+        sample = frame_sample(make_frame(self.scene_seed(k), self.sensor, self.extra_for(k)),
+                              self.half_extent)
         if self.augment_data:
             rng = np.random.default_rng([self.seed, 1, k])
             sample = augment(sample, self.features, rng)

@@ -20,6 +20,10 @@ Ground truth (`gt_filter`), as nuScenes evaluation filters it:
 - "none": every box of the scene (a third of them have no lidar point at all).
 
 Frame ids are `seed{seed:06d}` (the same scene seen by every sensor shares its id).
+
+A detector with group regression heads also fills the optional multi-hypothesis arrays
+`det_hyp_boxes [N, G, 9]` (final layer, one box per group head) and `det_hyp_scores [N, G]`
+(summed class probabilities per group); a unified-head detector leaves them out.
 """
 
 from __future__ import annotations
@@ -80,7 +84,7 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
     sensor = model.config.sensor
     max_detections = max_detections or model.config.n_queries
     seeds = [int(s) for s in seeds]
-    det_frame, logits, boxes, covs = [], [], [], []
+    det_frame, logits, boxes, covs, hyp_boxes, hyp_scores = [], [], [], [], [], []
     gt_frame, gt_labels, gt_boxes = [], [], []
     centres = model.token_centres
     floor = torch.eye(2) * model.token_grid.cell ** 2 / 12.0
@@ -91,6 +95,9 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
         det_frame.append(np.full(len(det.scores), i, dtype=np.int64))
         logits.append(det.layer_logits.numpy())
         boxes.append(det.layer_boxes.numpy())
+        if det.hyp_boxes is not None and det.hyp_scores is not None:
+            hyp_boxes.append(det.hyp_boxes.numpy())
+            hyp_scores.append(det.hyp_scores.numpy())
         if cov_source == "layers":
             covs.append(layer_covariance(det.layer_boxes.double()).numpy())
         elif cov_source == "attention":
@@ -109,6 +116,8 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
         return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype=dtype)
 
     n_layers, n_classes = model.config.n_layers, len(model.config.classes)
+    n_groups = len(model.config.groups)
+    grouped = model.config.head == "group"
     return Dump(
         classes=tuple(model.config.classes), score_mode="sigmoid",
         frame_ids=np.array([frame_id(s) for s in seeds]),
@@ -118,7 +127,9 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
         gt_frame=cat(gt_frame, (), np.int64), gt_labels=cat(gt_labels, (), np.int64),
         gt_boxes=cat(gt_boxes, (9,), np.float64),
         det_cov=cat(covs, (2, 2), np.float64) if cov_source != "none" else None,
-        cov_dims=("x", "y"))
+        cov_dims=("x", "y"),
+        det_hyp_boxes=cat(hyp_boxes, (n_groups, 9), np.float32) if grouped else None,
+        det_hyp_scores=cat(hyp_scores, (n_groups,), np.float32) if grouped else None)
 
 
 def write_dump(dump, out: str | Path, fmt: str = "npz") -> list[Path]:

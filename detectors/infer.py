@@ -7,7 +7,12 @@ outputs from every decoder layer.
 Per frame (K kept queries, L layers, C classes, T tokens):
 
     FrameDetections(layer_logits [K, L, C], layer_boxes [K, L, 9], attention [K, T] (final
-                    layer), scores [K], labels [K], query_index [K])
+                    layer), scores [K], labels [K], query_index [K],
+                    hyp_boxes [K, G, 9] | None, hyp_scores [K, G] | None)
+
+`hyp_boxes` / `hyp_scores` (group regression heads only, else None): the final layer's box
+of every group head and its group score (summed class probabilities of the group), the
+multi-hypothesis output of seed 001.
 """
 
 from __future__ import annotations
@@ -31,6 +36,8 @@ class FrameDetections:
     scores: Tensor
     labels: Tensor
     query_index: Tensor
+    hyp_boxes: Tensor | None = None
+    hyp_scores: Tensor | None = None
 
     @property
     def boxes(self) -> Tensor:
@@ -53,6 +60,8 @@ def postprocess(outputs: dict[str, Tensor], max_detections: int = 100) -> list[F
     logits = outputs["pred_logits"]  # [L, B, Q, C]
     boxes = outputs["pred_boxes"]  # [L, B, Q, 9]
     attention = outputs["attention"]  # [L, B, Q, T]
+    hyp_boxes = outputs.get("pred_group_boxes")  # [L, B, Q, G, 9] (group heads)
+    hyp_scores = outputs.get("group_scores")  # [L, B, Q, G]
     n_layers, batch, n_queries, _ = logits.shape
     k = min(max_detections, n_queries)
     frames = []
@@ -64,7 +73,9 @@ def postprocess(outputs: dict[str, Tensor], max_detections: int = 100) -> list[F
             layer_logits=logits[:, b, order].transpose(0, 1).contiguous(),
             layer_boxes=boxes[:, b, order].transpose(0, 1).contiguous(),
             attention=attention[-1, b, order].contiguous(),
-            scores=scores, labels=labels[order], query_index=order))
+            scores=scores, labels=labels[order], query_index=order,
+            hyp_boxes=None if hyp_boxes is None else hyp_boxes[-1, b, order].contiguous(),
+            hyp_scores=None if hyp_scores is None else hyp_scores[-1, b, order].contiguous()))
     return frames
 
 

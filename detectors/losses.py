@@ -7,6 +7,12 @@ queries (unmatched ones learn "no object" as all-zero targets), the L1 box loss 
 ones; every layer contributes (auxiliary losses). The TransFusion heatmap gets a CenterNet
 Gaussian focal loss.
 
+Group regression heads (seed 001, Sec. III-C): the output dict then holds every group
+head's box (`pred_group_encoded [L, B, Q, G, 10]`); the matching cost compares a
+ground-truth box of class c with each query's box *of c's group head* (the cost matrix keeps
+the unified size, queries x ground truth), and the L1 box loss of a matched pair reaches only
+that head.
+
 Targets: one `Target(labels [G] int64, boxes [G, 9] float32)` per frame, boxes in the
 detector's ego frame (x y z w l h yaw vx vy). Losses are normalised by the number of
 ground-truth boxes in the batch.
@@ -53,16 +59,28 @@ def _focal_cost(logits: Tensor, alpha: float = 0.25, gamma: float = 2.0) -> Tens
     return pos - neg
 
 
+def _group_boxes(encoded: Tensor, labels: Tensor, class_group: Tensor | None) -> Tensor:
+    """One frame's `[Q, G_h, 10]` group boxes -> `[Q, T, 10]`: for each of the T ground
+    truths (`labels [T]`), every query's box of that ground truth's group head."""
+    if class_group is None:
+        raise ValueError("group boxes need class_group (the group of every class)")
+    return encoded[:, class_group.to(labels.device)[labels]]
+
+
 class HungarianMatcher:
-    """One-to-one assignment of queries to ground truth minimising the DETR3D cost."""
+    """One-to-one assignment of queries to ground truth minimising the DETR3D cost.
+
+    `encoded` is `[B, Q, 10]` (unified head) or `[B, Q, G_h, 10]` with `class_group [C]`
+    (group heads: each ground truth is compared with its own group's box of every query)."""
 
     def __init__(self, cost_class: float = 2.0, cost_box: float = 0.25) -> None:
         self.cost_class = cost_class
         self.cost_box = cost_box
 
     @torch.no_grad()
-    def __call__(self, logits: Tensor, encoded: Tensor, targets: list[Target]) -> list[Match]:
-        """`logits [B, Q, C]`, `encoded [B, Q, 10]` -> B matches."""
+    def __call__(self, logits: Tensor, encoded: Tensor, targets: list[Target],
+                 class_group: Tensor | None = None) -> list[Match]:
+        """`logits [B, Q, C]`, `encoded [B, Q, 10]` or `[B, Q, G_h, 10]` -> B matches."""
         weights = torch.tensor(CODE_WEIGHTS, dtype=encoded.dtype, device=encoded.device)
         matches = []
         for b, target in enumerate(targets):
@@ -72,7 +90,11 @@ class HungarianMatcher:
                 continue
             cls = _focal_cost(logits[b])[:, target.labels]  # [Q, G]
             gt = encode_boxes(target.boxes.to(encoded)) * weights
-            box = torch.cdist(encoded[b] * weights, gt, p=1)
+            if encoded.ndim == 4:
+                own = _group_boxes(encoded[b], target.labels, class_group)  # [Q, G, 10]
+                box = ((own * weights - gt[None]).abs()).sum(-1)
+            else:
+                box = torch.cdist(encoded[b] * weights, gt, p=1)
             cost = (self.cost_class * cls + self.cost_box * box).cpu().numpy()
             q_idx, g_idx = linear_sum_assignment(np.nan_to_num(cost, nan=1e6))
             matches.append(Match(torch.as_tensor(q_idx, dtype=torch.long),
@@ -154,16 +176,25 @@ class SetCriterion:
 
     def __init__(self, fine_grid: BEVGrid, n_classes: int,
                  weights: LossWeights = LossWeights(),
-                 matcher: HungarianMatcher | None = None) -> None:
+                 matcher: HungarianMatcher | None = None,
+                 class_group: tuple[int, ...] | None = None) -> None:
         self.fine_grid = fine_grid
         self.n_classes = n_classes
         self.weights = weights
         self.matcher = matcher or HungarianMatcher()
+        self.class_group = None if class_group is None else \
+            torch.as_tensor(class_group, dtype=torch.long)
 
     def __call__(self, outputs: dict[str, Tensor], targets: list[Target]) -> dict[str, Tensor]:
         """Returns `loss` (to minimise) and its parts `heatmap`, `cls`, `box` (summed over
-        layers) and `cls_last`, `box_last` (final layer), all scalars."""
-        logits_all, encoded_all = outputs["pred_logits"], outputs["pred_encoded"]
+        layers) and `cls_last`, `box_last` (final layer), all scalars. With `class_group`
+        set, the boxes are `outputs["pred_group_encoded"]` (group-aware matching and loss)."""
+        grouped = self.class_group is not None
+        if grouped and "pred_group_encoded" not in outputs:
+            raise ValueError("class_group is set but the outputs have no pred_group_encoded "
+                             "(a unified-head detector)")
+        logits_all = outputs["pred_logits"]
+        encoded_all = outputs["pred_group_encoded" if grouped else "pred_encoded"]
         n_layers = logits_all.shape[0]
         device = logits_all.device
         n_gt = max(1.0, float(sum(len(t.labels) for t in targets)))
@@ -174,12 +205,16 @@ class SetCriterion:
         cls_terms, box_terms = [], []
         for layer in range(n_layers):
             logits, encoded = logits_all[layer], encoded_all[layer]
-            matches = self.matcher(logits, encoded, targets)
+            matches = self.matcher(logits, encoded, targets, self.class_group)
             onehot = torch.zeros_like(logits)
             pred, gt = [], []
             for b, (m, t) in enumerate(zip(matches, targets, strict=True)):
                 onehot[b, m.query, t.labels[m.gt]] = 1.0
-                pred.append(encoded[b, m.query])
+                if grouped:
+                    group = self.class_group[t.labels[m.gt]]  # type: ignore[index]
+                    pred.append(encoded[b, m.query, group])
+                else:
+                    pred.append(encoded[b, m.query])
                 gt.append(encode_boxes(t.boxes[m.gt].to(encoded)))
             cls_terms.append(sigmoid_focal_loss(logits, onehot) / n_gt)
             diff = (torch.cat(pred) - torch.cat(gt)).abs() * weights

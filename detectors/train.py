@@ -60,6 +60,9 @@ class TrainConfig:
     # Mean extra objects per class and training scene (rare-class over-sampling, see
     # detectors.sim.traffic.place_extra); None trains on the world's own class frequencies.
     extra_objects: dict[str, float] | None = None
+    # Fade-out (seed 001, Sec. III-F): the last `extra_fade` fraction of the steps trains
+    # without the object sampling, on the world's own class frequencies.
+    extra_fade: float = 0.0
     # Deep sub-ensemble member: copy and freeze the trunk of this weights file, train a
     # fresh decoder head on it (detectors.subensemble). None trains the whole model.
     base_weights: str | None = None
@@ -75,6 +78,13 @@ class TrainConfig:
         if self.workers < 0 or self.warmup < 0:
             raise ValueError(f"workers and warmup must be >= 0, got {self.workers}, "
                              f"{self.warmup}")
+        if not 0.0 <= self.extra_fade <= 1.0:
+            raise ValueError(f"extra_fade must be in [0, 1], got {self.extra_fade}")
+
+    @property
+    def fade_step(self) -> int:
+        """The first step trained without object sampling (`steps` when there is no fade)."""
+        return self.steps - int(round(self.extra_fade * self.steps))
 
     @classmethod
     def for_sensor(cls, sensor: str, **overrides: Any) -> TrainConfig:
@@ -113,7 +123,8 @@ def _save_checkpoint(path: Path, model: Detector, opt: torch.optim.Optimizer, st
                      cfg: TrainConfig, elapsed: float) -> None:
     tmp = path.with_suffix(".tmp")
     torch.save({"model": model.state_dict(), "optimizer": opt.state_dict(), "step": step,
-                "train_config": asdict(cfg), "elapsed_s": elapsed,
+                "train_config": asdict(cfg), "model_config": model.config.to_dict(),
+                "elapsed_s": elapsed,
                 "torch_rng": torch.get_rng_state(),
                 "numpy_rng": np.random.get_state()}, tmp)
     tmp.replace(path)
@@ -172,11 +183,20 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
         saved = ckpt["train_config"]
         if saved["seed"] != cfg.seed or saved["batch_size"] != cfg.batch_size or \
                 saved.get("extra_objects") != cfg.extra_objects or \
+                saved.get("extra_fade", 0.0) != cfg.extra_fade or \
                 saved.get("base_weights") != cfg.base_weights:
             raise ValueError(f"{ckpt_path} was trained with another seed, batch size, "
-                             "object sampling or base model; start fresh (--fresh) or use "
-                             "another run directory")
-        model.load_state_dict(ckpt["model"])
+                             "object sampling (or its fade-out) or base model; start fresh "
+                             "(--fresh) or use another run directory")
+        if ckpt.get("model_config", model.config.to_dict()) != model.config.to_dict():
+            raise ValueError(f"{ckpt_path} holds another detector architecture (head, token "
+                             "stride, widths); start fresh (--fresh) or use another run "
+                             "directory")
+        try:
+            model.load_state_dict(ckpt["model"])
+        except RuntimeError as exc:
+            raise ValueError(f"{ckpt_path} holds another detector architecture; start fresh "
+                             f"(--fresh) or use another run directory ({exc})") from None
         opt.load_state_dict(ckpt["optimizer"])
         torch.set_rng_state(ckpt["torch_rng"])
         np.random.set_state(ckpt["numpy_rng"])
@@ -185,11 +205,13 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
     elif log_path.exists():
         log_path.unlink()
 
-    criterion = SetCriterion(model.fine_grid, len(model.config.classes))
+    criterion = SetCriterion(model.fine_grid, len(model.config.classes),
+                             class_group=model.class_group)
     data = TrainSamples(cfg.sensor, SPLITS["train"], model.config.features,
                         model.grid.half_extent, seed=cfg.seed,
                         n_samples=cfg.steps * cfg.batch_size,
-                        extra_objects=cfg.extra_objects)
+                        extra_objects=cfg.extra_objects,
+                        extra_until=cfg.fade_step * cfg.batch_size)
     sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
     loader = torch.utils.data.DataLoader(
         data, batch_size=cfg.batch_size, sampler=sampler, collate_fn=collate,
@@ -216,7 +238,7 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
             lr = learning_rate(cfg, step)
             for group in opt.param_groups:
                 group["lr"] = lr
-            outputs = model([s.points for s in batch])
+            outputs = model([s.points for s in batch], need_attention=False)
             losses = criterion(outputs, [s.target for s in batch])
             opt.zero_grad(set_to_none=True)
             losses["loss"].backward()

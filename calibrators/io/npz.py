@@ -4,7 +4,7 @@ Loading never unpickles: strings are unicode arrays, everything else numeric. Th
 checked before anything is inflated or allocated: each member's `.npy` header (dtype, shape)
 and the zip's declared sizes, against `max_bytes` (the total inflated size), the dtypes a key
 may have (never object, complex or structured) and the shapes the other keys imply (N, L, G,
-F, C, D). Every missing, unknown, unreadable or inconsistent key is refused with a
+F, C, D, H). Every missing, unknown, unreadable or inconsistent key is refused with a
 `FieldError` naming the key; values (NaN/Inf, indices) are then checked by
 `calibrators.dump.Dump`, whose messages name the key too. Messages never show the file's path.
 """
@@ -25,12 +25,16 @@ from calibrators.io.atomic import atomic_write
 REQUIRED_KEYS = ("classes", "score_mode", "frame_ids", "det_frame", "det_logits", "det_boxes",
                  "gt_frame", "gt_labels", "gt_boxes")
 OPTIONAL_KEYS = ("ego_translation", "det_cov", "cov_dims")
+#: Optional too, and only together: the box hypotheses of group regression heads.
+HYPOTHESIS_KEYS = ("det_hyp_boxes", "det_hyp_scores")
+KNOWN_KEYS = REQUIRED_KEYS + OPTIONAL_KEYS + HYPOTHESIS_KEYS
 STRING_KEYS = {"classes": 1, "score_mode": 0, "frame_ids": 1, "cov_dims": 1}  # key -> ndim
 #: Shape of every key in the symbols of docs/formats.md (an int is a fixed size); a symbol
 #: takes its size from the first key in this order that has it.
 SHAPES: dict[str, tuple[str | int, ...]] = {
     "det_logits": ("N", "L", "C'"), "det_boxes": ("N", "L", 9), "det_frame": ("N",),
-    "cov_dims": ("D",), "det_cov": ("N", "D", "D"), "gt_boxes": ("G", 9), "gt_frame": ("G",),
+    "cov_dims": ("D",), "det_cov": ("N", "D", "D"), "det_hyp_boxes": ("N", "H", 9),
+    "det_hyp_scores": ("N", "H"), "gt_boxes": ("G", 9), "gt_frame": ("G",),
     "gt_labels": ("G",), "frame_ids": ("F",), "ego_translation": ("F", 3), "classes": ("C",),
     "score_mode": ()}
 #: Default limit on the inflated size of all arrays together (bytes); `load_dump(max_bytes=)`.
@@ -96,6 +100,9 @@ def save_dump(path: str | os.PathLike[str] | BinaryIO, dump: Dump) -> None:
         arrays["ego_translation"] = dump.ego_translation
     if dump.det_cov is not None:
         arrays["det_cov"] = dump.det_cov
+    if dump.det_hyp_boxes is not None and dump.det_hyp_scores is not None:
+        arrays["det_hyp_boxes"] = dump.det_hyp_boxes
+        arrays["det_hyp_scores"] = dump.det_hyp_scores
     if hasattr(path, "write"):
         np.savez_compressed(path, **arrays)
         return
@@ -133,9 +140,9 @@ def _members(archive: zipfile.ZipFile) -> dict[str, zipfile.ZipInfo]:
     members: dict[str, zipfile.ZipInfo] = {}
     for info in archive.infolist():
         key = info.filename[:-4] if info.filename.endswith(".npy") else info.filename
-        if key not in REQUIRED_KEYS and key not in OPTIONAL_KEYS:
+        if key not in KNOWN_KEYS:
             raise FieldError(key, f"unknown key {key!r}; validation dump v1 has "
-                                  f"{list(REQUIRED_KEYS + OPTIONAL_KEYS)}")
+                                  f"{list(KNOWN_KEYS)}")
         if not info.filename.endswith(".npy") or info.is_dir():
             raise FieldError(key, f"key {key!r} must be a .npy member of the archive, got "
                                   f"{info.filename!r}")

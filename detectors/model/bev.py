@@ -150,6 +150,22 @@ class BEVBackbone(nn.Module):
         return BEVFeatures(fine=fine, coarse=self.tokens(s2))
 
 
+class PillarTokens(nn.Module):
+    """Cross-attention tokens at the pillar grid's own resolution (stride 1, seed 000's
+    128 x 128 at 0.8 m): a 1x1 conv of the pillar map plus the fine map upsampled x2.
+
+    pillar map [B, C_in, S, S], fine [B, D, S/2, S/2] -> [B, D, S, S]
+    """
+
+    def __init__(self, in_channels: int, d_model: int) -> None:
+        super().__init__()
+        self.proj = nn.Conv2d(in_channels, d_model, 1)
+
+    def forward(self, pillars: Tensor, fine: Tensor) -> Tensor:
+        return self.proj(pillars) + nn.functional.interpolate(fine, scale_factor=2.0,
+                                                              mode="nearest")
+
+
 class PositionEncoding(nn.Module):
     """Learned positional encoding of BEV positions (TransFusion's PositionEmbeddingLearned).
 

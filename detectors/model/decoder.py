@@ -10,7 +10,11 @@ source reads.
 Shapes (B frames, Q queries, T = H*W BEV tokens, D channels):
 
     query [B, Q, D], query_pos [B, Q, D], memory [B, T, D], memory_pos [B, T, D]
-    -> DecoderOutput(query [B, Q, D], attention [B, Q, T])
+    -> DecoderOutput(query [B, Q, D], attention [B, Q, T] | None)
+
+`need_weights=False` skips the weights (None) and lets torch use its fused attention kernel:
+training does not read them, and with fine token maps (T = 4 096 or 16 384) the
+[B, heads, Q, T] weight matrix is the largest tensor of a training step.
 """
 
 from __future__ import annotations
@@ -21,10 +25,11 @@ from torch import Tensor, nn
 
 
 class DecoderOutput(NamedTuple):
-    """Updated queries `[B, Q, D]` and head-averaged cross-attention weights `[B, Q, T]`."""
+    """Updated queries `[B, Q, D]` and head-averaged cross-attention weights `[B, Q, T]`
+    (None when not asked for)."""
 
     query: Tensor
-    attention: Tensor
+    attention: Tensor | None
 
 
 class DecoderLayer(nn.Module):
@@ -46,12 +51,13 @@ class DecoderLayer(nn.Module):
         self.drop3 = nn.Dropout(dropout)
 
     def forward(self, query: Tensor, query_pos: Tensor, memory: Tensor,
-                memory_pos: Tensor) -> DecoderOutput:
+                memory_pos: Tensor, need_weights: bool = True) -> DecoderOutput:
         q = query + query_pos
         attended, _ = self.self_attn(q, q, query, need_weights=False)
         query = self.norm1(query + self.drop1(attended))
         attended, weights = self.cross_attn(query + query_pos, memory + memory_pos, memory,
-                                            need_weights=True, average_attn_weights=True)
+                                            need_weights=need_weights,
+                                            average_attn_weights=True)
         query = self.norm2(query + self.drop2(attended))
         query = self.norm3(query + self.drop3(self.ffn(query)))
         return DecoderOutput(query=query, attention=weights)

@@ -1,8 +1,14 @@
 """The DETR-style BEV detector (PillarFormer/TransFusion-L in miniature).
 
 points -> PillarEncoder -> BEVBackbone -> (fine map: heatmap + query init,
-coarse map + positional encoding: cross-attention tokens) -> L decoder layers, each followed
+token map + positional encoding: cross-attention tokens) -> L decoder layers, each followed
 by its class and box head; every layer's centres become the next layer's anchors.
+
+Two options (DetectorConfig): `head` "unified" (one box MLP, the shipped v1 weights) or
+"group" (seed 001: one box MLP per class group, group-aware matching in training, option-A
+refinement: the next anchor is the group-score-weighted mean of the G centres); and
+`token_stride` 4 (tokens = the coarse map, 3.2 m cells with the default grid), 2 (the fine
+map, 1.6 m) or 1 (`bev.PillarTokens`, 0.8 m: seed 000's 128 x 128).
 
 `forward(points)` takes a list of B point clouds `[P_b, F]` and returns a dict:
 
@@ -18,6 +24,16 @@ by its class and box head; every layer's centres become the next layer's anchors
     query_scores  [B, Q]         heatmap probability at each query's cell
     token_centres [T, 2]         x y (metres) of every token cell centre (attention support)
 
+A group head (G groups) adds, for every layer (the box in `pred_boxes` is then the one of
+the group of the layer's top class):
+
+    pred_group_boxes   [L, B, Q, G, 9]   every group head's box
+    pred_group_encoded [L, B, Q, G, 10]  the same in regression space
+    group_scores       [L, B, Q, G]      summed sigmoid class probabilities per group
+
+`forward(points, need_attention=False)` leaves `attention` out (training: the fused
+attention kernel, no [B, heads, Q, T] weight matrix).
+
 Grid metadata lives on the module: `token_grid` / `fine_grid` (BEVGrid: size, cell metres,
 origin metres).
 """
@@ -30,10 +46,23 @@ from typing import Any, NamedTuple
 import torch
 from torch import Tensor, nn
 
-from detectors.model.bev import BEVBackbone, BEVGrid, PillarEncoder, PositionEncoding
+from detectors.model.bev import (
+    BEVBackbone,
+    BEVFeatures,
+    BEVGrid,
+    PillarEncoder,
+    PillarTokens,
+    PositionEncoding,
+)
 from detectors.model.decoder import DecoderLayer
+from detectors.model.group_head import GroupDetectionHead
+from detectors.model.groups import DEFAULT_GROUPS, class_groups
 from detectors.model.heads import DetectionHead
 from detectors.model.queries import HeatmapQueries
+
+#: Regression heads and token strides a DetectorConfig may name.
+HEADS: tuple[str, ...] = ("unified", "group")
+TOKEN_STRIDES: tuple[int, ...] = (4, 2, 1)
 
 
 @dataclass(frozen=True)
@@ -62,7 +91,21 @@ class DetectorConfig:
     dropout: float = 0.1
     # Classes exempt from the heatmap's 3x3 local-maximum suppression (TransFusion).
     keep_all_classes: tuple[str, ...] = ("pedestrian", "traffic_cone")
+    # Regression head: "unified" (one box MLP) or "group" (one per class group, seed 001).
+    head: str = "unified"
+    groups: tuple[tuple[str, ...], ...] = DEFAULT_GROUPS
+    # Cross-attention tokens: stride of the token map over the pillar grid (4, 2 or 1).
+    token_stride: int = 4
     extra: dict[str, Any] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        if self.head not in HEADS:
+            raise ValueError(f"head must be one of {list(HEADS)}, got {self.head!r}")
+        if self.token_stride not in TOKEN_STRIDES:
+            raise ValueError(f"token_stride must be one of {list(TOKEN_STRIDES)}, "
+                             f"got {self.token_stride}")
+        if self.head == "group":
+            class_groups(self.classes, self.groups)  # every class in exactly one group
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -73,6 +116,8 @@ class DetectorConfig:
         for key in ("features", "classes", "blocks", "keep_all_classes"):
             if key in data:
                 data[key] = tuple(data[key])
+        if "groups" in data:
+            data["groups"] = tuple(tuple(g) for g in data["groups"])
         return cls(**data)
 
 
@@ -96,7 +141,7 @@ class Detector(nn.Module):
         grid = BEVGrid(size=cfg.grid_size, cell=cfg.grid_cell)
         self.grid = grid
         self.fine_grid = grid.strided(2)
-        self.token_grid = grid.strided(4)
+        self.token_grid = grid.strided(cfg.token_stride)
         n_classes = len(cfg.classes)
         self.pillars = PillarEncoder(len(cfg.features), cfg.pillar_channels, grid)
         self.backbone = BEVBackbone(self.pillars.out_channels, cfg.c1, cfg.c2, cfg.d_model,
@@ -104,50 +149,74 @@ class Detector(nn.Module):
         keep = tuple(cfg.classes.index(c) for c in cfg.keep_all_classes if c in cfg.classes)
         self.queries = HeatmapQueries(cfg.d_model, n_classes, cfg.n_queries, self.fine_grid,
                                       keep)
+        if cfg.token_stride == 1:
+            self.pillar_tokens = PillarTokens(self.pillars.out_channels, cfg.d_model)
         self.position = PositionEncoding(cfg.d_model, grid.half_extent)
         self.layers = nn.ModuleList(DecoderLayer(cfg.d_model, cfg.n_heads, cfg.d_ffn,
                                                  cfg.dropout) for _ in range(cfg.n_layers))
-        self.heads = nn.ModuleList(DetectionHead(cfg.d_model, n_classes, self.fine_grid.cell)
-                                   for _ in range(cfg.n_layers))
+        if cfg.head == "group":
+            self.class_group: tuple[int, ...] | None = class_groups(cfg.classes, cfg.groups)
+            self.heads = nn.ModuleList(
+                GroupDetectionHead(cfg.d_model, n_classes, self.class_group,
+                                   self.fine_grid.cell) for _ in range(cfg.n_layers))
+        else:
+            self.class_group = None
+            self.heads = nn.ModuleList(DetectionHead(cfg.d_model, n_classes,
+                                                     self.fine_grid.cell)
+                                       for _ in range(cfg.n_layers))
         self.register_buffer("token_centres", self.token_grid.centres(), persistent=False)
 
-    def forward(self, points: list[Tensor]) -> dict[str, Tensor]:
-        return self.decode(self.encode(points))
+    def forward(self, points: list[Tensor], need_attention: bool = True) -> dict[str, Tensor]:
+        return self.decode(self.encode(points), need_attention)
 
     def encode(self, points: list[Tensor]) -> Encoded:
         """The trunk: pillars, backbone, heatmap queries and the cross-attention memory."""
         pillars = self.pillars(points)
         bev = self.backbone(pillars)
         init = self.queries(bev.fine)
-        memory = bev.coarse.flatten(2).transpose(1, 2)  # [B, T, D]
+        tokens = self._tokens(pillars, bev)
+        memory = tokens.flatten(2).transpose(1, 2)  # [B, T, D]
         memory_pos = self.position(self.token_centres)[None]  # [1, T, D]
         return Encoded(init, memory, memory_pos)
 
-    def decode(self, enc: Encoded) -> dict[str, Tensor]:
+    def _tokens(self, pillars: Tensor, bev: BEVFeatures) -> Tensor:
+        """The token map `[B, D, S / token_stride, S / token_stride]`."""
+        stride = self.config.token_stride
+        if stride == 4:
+            return bev.coarse
+        if stride == 2:
+            return bev.fine
+        return self.pillar_tokens(pillars, bev.fine)
+
+    def decode(self, enc: Encoded, need_attention: bool = True) -> dict[str, Tensor]:
         """The decoder layers and their heads on an `encode` result (the output dict)."""
         init, memory, memory_pos = enc.init, enc.memory, enc.memory_pos
         query = init.content
         anchors = init.anchors
-        logits, encoded, boxes, attention, anchor_list = [], [], [], [], []
+        preds, attention, anchor_list = [], [], []
         for layer, head in zip(self.layers, self.heads, strict=True):
             query_pos = self.position(anchors)
-            out = layer(query, query_pos, memory, memory_pos)
+            out = layer(query, query_pos, memory, memory_pos, need_weights=need_attention)
             query = out.query
             pred = head(query, anchors)
-            logits.append(pred.logits)
-            encoded.append(pred.encoded)
-            boxes.append(pred.boxes)
+            preds.append(pred)
             attention.append(out.attention)
             anchor_list.append(anchors)
-            anchors = pred.encoded[..., 0:2].detach()
-        return {
-            "pred_logits": torch.stack(logits),
-            "pred_boxes": torch.stack(boxes),
-            "pred_encoded": torch.stack(encoded),
-            "attention": torch.stack(attention),
+            anchors = pred.next_anchors.detach()
+        result = {
+            "pred_logits": torch.stack([p.logits for p in preds]),
+            "pred_boxes": torch.stack([p.boxes for p in preds]),
+            "pred_encoded": torch.stack([p.encoded for p in preds]),
             "anchors": torch.stack(anchor_list),
             "heatmap": init.heatmap,
             "query_labels": init.labels,
             "query_scores": init.scores,
             "token_centres": self.token_centres,
         }
+        if need_attention:
+            result["attention"] = torch.stack(attention)
+        if self.class_group is not None:
+            result["pred_group_boxes"] = torch.stack([p.group_boxes for p in preds])
+            result["pred_group_encoded"] = torch.stack([p.group_encoded for p in preds])
+            result["group_scores"] = torch.stack([p.group_scores for p in preds])
+        return result
