@@ -1,7 +1,8 @@
 """In-memory cache of parsed profiles; stored versions are immutable, so a version never goes stale.
 
-The active *pointer* is read from the store on every lookup (one indexed read), so an
-activation by another worker process or a finished fit is seen by the next request.
+The active *pointer* (alias `champion`) and every other alias are read from the store on every
+lookup (one indexed read), so an activation or alias move by another worker process or a
+finished fit is seen by the next request.
 """
 
 from __future__ import annotations
@@ -50,14 +51,16 @@ class ProfileCache:
 
     def resolve(self, ref: str | None, default: str, loc: tuple[str, ...] = ("body", "profile")
                 ) -> LoadedProfile:
-        """The profile for `name` (active version) or `name@version`; 404 if unknown, 422
-        naming `loc` if `ref` is not a name or its version not a version number."""
+        """The profile for `name` (active version), `name@version` or `name@alias`; 404 if
+        unknown, 422 naming `loc` if `ref` is not a name or its version or alias is malformed."""
         try:
-            name, number = parse_profile_ref(default if ref is None else ref)
+            name, number, alias = parse_profile_ref(default if ref is None else ref)
         except ValueError as exc:
             raise RequestError(list(loc), str(exc)) from None
         if number is not None:
             return self._version(name, number)
+        if alias is not None:
+            return self._version(name, self.store.alias_version(name, alias))
         version = self.store.active_version(name)
         if version is None:
             raise NotFoundError(f"profile {name!r} does not exist")

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import shutil
+from pathlib import Path
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -24,6 +26,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--log-level", default="info",
                    choices=("critical", "error", "warning", "info", "debug"))
     p.set_defaults(func=serve)
+
+
+def multiprocess_metrics(directory: Path) -> None:
+    """Let the worker processes share their Prometheus counters through files in `directory`
+    (emptied first: counts from an earlier run must not add up), so that /metrics from any
+    worker reports the whole server (prometheus_client's multiprocess mode)."""
+    if directory.exists():
+        shutil.rmtree(directory)
+    directory.mkdir(mode=0o700, parents=True)
+    os.environ["PROMETHEUS_MULTIPROC_DIR"] = str(directory)
 
 
 def serve(args: argparse.Namespace) -> int:
@@ -52,6 +64,8 @@ def serve(args: argparse.Namespace) -> int:
             ensure_default_profile(settings)
         except (ImportError, FileNotFoundError) as exc:
             print(f"detcal: no default profile fitted ({exc}); upload a dump to POST /v1/fit")
+    if settings.workers > 1:
+        multiprocess_metrics(settings.data_dir / "prometheus")
     print(f"detcal: serving on http://{settings.host}:{settings.port}/ "
           f"(data in {settings.data_dir.resolve()})", flush=True)
     uvicorn.run("app.main:create_app", factory=True, host=settings.host, port=settings.port,

@@ -1,10 +1,12 @@
-"""`Annotated` dependency aliases (settings, store, profile cache, job runner, metrics, admin),
-the admin-token rule, the middleware that applies it before a body is read, and the request
-checks every route shares (JSON content type, no empty form fields)."""
+"""`Annotated` dependency aliases (settings, store, profile cache, job runner, metrics, admin and
+its audit id), the admin-token rule, the middleware that applies it before a body is read, and
+the request checks every route shares (JSON content type, no empty form fields)."""
 
 from __future__ import annotations
 
+import hashlib
 import hmac
+from collections.abc import Callable
 from typing import Annotated
 
 from fastapi import Depends, HTTPException, Request, status
@@ -79,6 +81,52 @@ def require_admin(settings: SettingsDep, request: Request, _: Annotated[
 AdminDep = Annotated[None, Depends(require_admin)]
 
 
+def feedback_refusal(settings: Settings, authorization: str | None) -> HTTPException | None:
+    """Why a request is not admitted to send feedback: it needs the admin token or the
+    feedback-only token (`DETCAL_FEEDBACK_TOKEN`), compared in constant time; or None."""
+    refusal = admin_refusal(settings, authorization)
+    if refusal is None or settings.feedback_token is None:
+        return refusal
+    scheme, token = get_authorization_scheme_param(authorization)
+    if scheme.lower() != "bearer" or not token:
+        return HTTPException(status.HTTP_401_UNAUTHORIZED, "admin or feedback bearer token "
+                             "required", headers={"WWW-Authenticate": "Bearer"})
+    expected = settings.feedback_token.get_secret_value().encode()
+    if hmac.compare_digest(token.encode(), expected):
+        return None
+    return HTTPException(status.HTTP_403_FORBIDDEN, "wrong token (the admin or the feedback "
+                                                    "token is required)")
+
+
+def token_id(token: str) -> str:
+    """The id the audit log records for an admin token (`tok-` and 12 hex digits of its
+    sha256): tells tokens apart, never reveals one."""
+    return "tok-" + hashlib.sha256(token.encode()).hexdigest()[:12]
+
+
+def admin_token_id(request: Request, _: AdminDep) -> str:
+    """Admit only the admin token (as `require_admin`) and return its audit id."""
+    return token_id(get_authorization_scheme_param(request.headers.get("authorization"))[1])
+
+
+#: An admitted admin request's token id, for the audit log of its write.
+AdminIdDep = Annotated[str, Depends(admin_token_id)]
+
+
+def feedback_token_id(settings: SettingsDep, request: Request, _: Annotated[
+        HTTPAuthorizationCredentials | None, Depends(_bearer)]) -> str:
+    """Admit the admin or the feedback token (`feedback_refusal`) and return its audit id."""
+    authorization = request.headers.get("authorization")
+    refusal = feedback_refusal(settings, authorization)
+    if refusal is not None:
+        raise refusal
+    return token_id(get_authorization_scheme_param(authorization)[1])
+
+
+#: A request admitted to send feedback: its token id.
+FeedbackIdDep = Annotated[str, Depends(feedback_token_id)]
+
+
 def _calls(dependant: Dependant) -> set[object]:
     calls = {dependant.call}
     for sub in dependant.dependencies:
@@ -87,8 +135,9 @@ def _calls(dependant: Dependant) -> set[object]:
 
 
 class AdminBeforeBodyMiddleware:
-    """Check the admin token of a route that depends on `require_admin` before a single byte
-    of its body is handed to the app: the check runs when the app first asks for the body.
+    """Check the admin token of a route that depends on `require_admin` (the admin or feedback
+    token of one that depends on `feedback_token_id`) before a single byte of its body is
+    handed to the app: the check runs when the app first asks for the body.
 
     FastAPI reads a form body (spooling uploads to disk) before it runs the route's
     dependencies, so without this an unauthenticated upload would be received in full before
@@ -104,6 +153,17 @@ class AdminBeforeBodyMiddleware:
         """Whether `route` depends on `require_admin` (directly or through other dependencies)."""
         return isinstance(route, APIRoute) and require_admin in _calls(route.dependant)
 
+    @staticmethod
+    def gate(route: object) -> Callable[[Settings, str | None], HTTPException | None] | None:
+        """The token rule `route` is checked with before its body: `admin_refusal` for routes
+        that need the admin token, `feedback_refusal` for feedback, None for the others."""
+        if not isinstance(route, APIRoute):
+            return None
+        calls = _calls(route.dependant)
+        if require_admin in calls:
+            return admin_refusal
+        return feedback_refusal if feedback_token_id in calls else None
+
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
@@ -114,9 +174,10 @@ class AdminBeforeBodyMiddleware:
             nonlocal checked
             if not checked:
                 checked = True
-                if self.needs_admin(scope.get("route")):   # set once the router matched
-                    refusal = admin_refusal(scope["app"].state.settings,
-                                            Headers(scope=scope).get("authorization"))
+                gate = self.gate(scope.get("route"))   # the route is set once matched
+                if gate is not None:
+                    refusal = gate(scope["app"].state.settings,
+                                   Headers(scope=scope).get("authorization"))
                     if refusal is not None:
                         raise refusal
             return await receive()

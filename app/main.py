@@ -21,7 +21,20 @@ from app.jobs import JobRunner
 from app.limits import BodySizeLimitMiddleware
 from app.offload import CalibrateRunner
 from app.prometheus import MetricsMiddleware, ServiceMetrics
-from app.routers import calibrate, dashboard, detect, fit, health, jobs, metrics, profiles
+from app.routers import (
+    aliases,
+    audit,
+    calibrate,
+    dashboard,
+    detect,
+    feedback,
+    fit,
+    health,
+    jobs,
+    metrics,
+    profile_health,
+    profiles,
+)
 from app.settings import Settings, get_settings
 from app.store import Store
 from calibrators.vocab import detcal_version
@@ -78,7 +91,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.state.dashboard = DashboardRenderer()
     install_handlers(app)
     install_openapi(app)
-    for module in (health, metrics, calibrate, fit, jobs, profiles, detect, dashboard):
+    # aliases and profile_health before profiles: /{name}/aliases is not /{name}/{version}
+    for module in (health, metrics, calibrate, fit, jobs, aliases, profile_health, profiles,
+                   feedback, audit, detect, dashboard):
         app.include_router(module.router)
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes,
                        upload_bytes=settings.max_upload_bytes)

@@ -2,23 +2,29 @@
 
 from __future__ import annotations
 
+import json
+import os
 import time
 from collections.abc import Iterator
 from typing import Any
 
-from prometheus_client import CollectorRegistry, Counter, Histogram
-from prometheus_client.core import GaugeMetricFamily
+from prometheus_client import CollectorRegistry, Counter, Histogram, generate_latest, multiprocess
+from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
-from app.store import Store
+from app.store import HealthOverview, Store
 from app.store.records import JOB_STATES
+from calibrators.health import HealthCounts
 
+#: Set (to a directory) when several worker processes share their counters.
+MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"
 _BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0)
 
 
 class _StoreCollector(Collector):
-    """Fit jobs by state and the active version of every profile, read at scrape time."""
+    """Fit jobs by state, the active version of every profile and the feedback health of every
+    version that has feedback, read at scrape time."""
 
     def __init__(self, store: Store) -> None:
         self.store = store
@@ -34,6 +40,42 @@ class _StoreCollector(Collector):
         for name, version in sorted(self.store.active_versions().items()):
             active.add_metric([name], version)
         yield active
+        yield from health_metrics(self.store.health_overview())
+
+
+HEALTH_STATUSES = ("ok", "degraded", "insufficient")
+
+
+def health_metrics(rows: list[HealthOverview]) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
+    """Feedback health of each version (over all its feedback so far): status (one-hot), ECE,
+    coverage per served level, frames, and the drift alarms raised (a counter)."""
+    labels = ["profile", "version"]
+    status = GaugeMetricFamily("detcal_profile_health_status", "Health status of a profile "
+                               "version (1 for its status).", labels=[*labels, "status"])
+    ece = GaugeMetricFamily("detcal_profile_health_ece", "ECE of the calibrated scores on "
+                            "feedback.", labels=labels)
+    coverage = GaugeMetricFamily("detcal_profile_health_coverage", "Fraction of true centres "
+                                 "inside the served ellipses on feedback.",
+                                 labels=[*labels, "level"])
+    frames = GaugeMetricFamily("detcal_profile_health_frames", "Feedback frames received.",
+                               labels=labels)
+    alarms = CounterMetricFamily("detcal_drift_alarms", "Drift alarms raised on feedback.",
+                                 labels=labels)
+    for row in rows:
+        key = [row.name, str(row.version)]
+        counts = HealthCounts.from_dict(json.loads(row.latest.counts))
+        levels = json.loads(row.latest.drift)["levels"]
+        for s in HEALTH_STATUSES:
+            status.add_metric([*key, s], float(row.latest.status == s))
+        value = counts.ece()
+        if value is not None:
+            ece.add_metric(key, value)
+        for level, cov in zip(levels, counts.coverage(), strict=True):
+            if cov is not None:
+                coverage.add_metric([*key, f"{level:g}"], cov)
+        frames.add_metric(key, counts.frames)
+        alarms.add_metric(key, row.latest.alarms_total)
+    yield from (status, ece, coverage, frames, alarms)
 
 
 class ServiceMetrics:
@@ -58,10 +100,30 @@ class ServiceMetrics:
         self._store_collector = _StoreCollector(store)
         self.registry.register(self._store_collector)
 
+    def _scrape_registry(self) -> CollectorRegistry:
+        """This app's registry; under several worker processes (`PROMETHEUS_MULTIPROC_DIR`,
+        set by `detcal serve --workers N`), the counters and histograms of every worker
+        summed from their files, plus the store's gauges (the same in every worker)."""
+        if not os.environ.get(MULTIPROC_ENV):
+            return self.registry
+        registry = CollectorRegistry()
+        multiprocess.MultiProcessCollector(registry)
+        if self._store_collector is not None:
+            registry.register(self._store_collector)
+        return registry
+
+    def exposition(self) -> bytes:
+        """The Prometheus text exposition of `_scrape_registry`."""
+        return generate_latest(self._scrape_registry())
+
     def request_totals(self) -> dict[str, float]:
-        """Request count per route (all methods and statuses), for the dashboard."""
+        """Request count per route (all methods and statuses, all workers), for the
+        dashboard."""
         totals: dict[str, float] = {}
-        for metric in self.requests.collect():
+        registry = self._scrape_registry()
+        metrics = (self.requests.collect() if registry is self.registry
+                   else (m for m in registry.collect() if m.name == "detcal_http_requests"))
+        for metric in metrics:
             for sample in metric.samples:
                 if sample.name.endswith("_total"):
                     route = sample.labels["route"]

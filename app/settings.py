@@ -39,6 +39,16 @@ class Settings(BaseSettings):
                                "are parsed and calibrated in a worker process.")
     dashboard_sensor: str = Field("lidar", description="Sensor of the dashboard's BEV frame.")
     dashboard_seed: int = Field(0, description="Simulated frame seed drawn on the dashboard.")
+    health_window_frames: int = Field(500, ge=1, description="Feedback frames in the rolling "
+                                      "window of GET /v1/profiles/{name}/health.")
+    health_chunk_frames: int = Field(25, ge=1, description="Feedback frames per stored health "
+                                     "point (the time series' resolution).")
+    auto_refit: bool = Field(False, description="Keep feedback frames and, when feedback first "
+                             "degrades a champion, fit a `challenger` version on them (never "
+                             "activated).")
+    feedback_token: SecretStr | None = Field(
+        None, description="A second bearer token that may only POST /v1/feedback (for the "
+                          "labelling pipeline); the admin token may too.")
 
     @model_validator(mode="after")
     def _token_from_file(self) -> Settings:

@@ -222,7 +222,7 @@ def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) 
 def render_page(*, version: str, status: dict[str, str], uptime_s: float,
                 requests: dict[str, float], names: list[NameSummary], default_name: str,
                 loaded: LoadedProfile | None, versions_html: str, report_html: str,
-                bev_html: str, jobs: list[JobRecord]) -> str:
+                bev_html: str, jobs: list[JobRecord], health_html: str = "") -> str:
     """The whole dashboard document."""
     total = sum(requests.values())
     rate = total / max(uptime_s, 1e-9)
@@ -267,6 +267,8 @@ def render_page(*, version: str, status: dict[str, str], uptime_s: float,
 <section id="profiles"><h2>Profiles</h2><table><tr><th>name</th><th>active</th><th>versions</th>
 <th>latest</th></tr>{name_rows}</table></section>
 <section id="active"><h2>Active profile ({_e(default_name)})</h2>{profile_html}</section>
+<section id="calibration-health"><h2>Calibration health (labelled feedback)</h2>{health_html or
+"<p class='note'>No active profile.</p>"}</section>
 <section id="report"><h2>Before / after calibration</h2>{report_html}</section>
 <section id="bev"><h2>Bird's-eye view</h2>{bev_html}</section>
 <section id="jobs"><h2>Recent fit jobs</h2><table><tr><th>job</th><th>name</th><th>state</th>

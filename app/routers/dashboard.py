@@ -8,6 +8,7 @@ from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse
 
 from app.cache import LoadedProfile
+from app.dashboard.health_series import health_section
 from app.dashboard.page import (
     DashboardRenderer,
     before_after_table,
@@ -18,6 +19,7 @@ from app.dashboard.page import (
     versions_table,
 )
 from app.deps import CacheDep, MetricsDep, SettingsDep, StoreDep
+from app.health_document import health_document
 from app.store import NotFoundError
 from calibrators import ProfileReport
 
@@ -34,7 +36,8 @@ RendererDep = Annotated[DashboardRenderer, Depends(_renderer)]
 @router.get("/", response_class=HTMLResponse)
 def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: SettingsDep,
               metrics: MetricsDep, renderer: RendererDep) -> HTMLResponse:
-    """The dashboard: health, request rates, profiles, before/after report and plots."""
+    """The dashboard: health, request rates, profiles, calibration health from feedback,
+    before/after report and plots."""
     ok = store.ping()
     status = {"store": "ok" if ok else "unreachable"}
     loaded = None
@@ -44,9 +47,11 @@ def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: Sett
     except (NotFoundError, ValueError) as exc:
         status["active profile"] = str(exc)
     status["readiness"] = "ready" if ok and loaded is not None else "not ready"
-    report_html = bev_html = versions_html = ""
+    report_html = bev_html = versions_html = health_html = ""
     if loaded is not None:
         versions_html = versions_table(store.versions(loaded.record.name))
+        health_html = health_section(health_document(store, loaded,
+                                                     settings.health_window_frames))
         report_html = _report_html(loaded, renderer)
         bev_html = renderer.bev(loaded, request.app.state.detectors, settings.dashboard_sensor,
                                 settings.dashboard_seed)
@@ -54,7 +59,8 @@ def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: Sett
         version=request.app.version, status=status, uptime_s=uptime(metrics.started),
         requests=metrics.request_totals(), names=store.names(),
         default_name=settings.default_profile, loaded=loaded, versions_html=versions_html,
-        report_html=report_html, bev_html=bev_html, jobs=store.recent_jobs(8))
+        report_html=report_html, bev_html=bev_html, jobs=store.recent_jobs(8),
+        health_html=health_html)
     return HTMLResponse(page)
 
 

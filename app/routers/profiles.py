@@ -7,10 +7,10 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path
 
-from app.deps import AdminDep, StoreDep
+from app.deps import AdminIdDep, StoreDep
 from app.schemas.common import ErrorResponse, ProfileName, Version
 from app.schemas.profiles import ProfileDetail, ProfileSummary, ProfileVersions, VersionSummary
-from app.store import ProfileRecord
+from app.store import AuditEntry, ProfileRecord
 
 router = APIRouter(prefix="/v1/profiles", tags=["profiles"])
 NOT_FOUND = {404: {"model": ErrorResponse}}
@@ -49,7 +49,11 @@ def get_version(name: ProfileName, version: VersionPath, store: StoreDep) -> Pro
 @router.post("/{name}/{version}/activate",
              responses={**NOT_FOUND, 401: {"model": ErrorResponse},
                         403: {"model": ErrorResponse}})
-def activate(name: ProfileName, version: VersionPath, store: StoreDep, _: AdminDep
+def activate(name: ProfileName, version: VersionPath, store: StoreDep, token: AdminIdDep
              ) -> VersionSummary:
-    """Make a version the active one of its name, atomically (rolling back = an older one)."""
-    return _summary(store.activate(name, version))
+    """Make a version the active one (alias `champion`) of its name, atomically (rolling back
+    = an older one)."""
+    previous = store.active_version(name)
+    audit = AuditEntry("activate", f"{name}@champion", token,
+                       {"version": version, "previous": previous})
+    return _summary(store.activate(name, version, audit))

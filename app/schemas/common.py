@@ -1,5 +1,6 @@
-"""Shared pydantic types: strict finite numbers, profile names and versions (the one parser of
-`name@version`), JSON values that must be finite, references to profile versions, error bodies.
+"""Shared pydantic types: strict finite numbers, profile names, versions and aliases (the one
+parser of `name`, `name@version` and `name@alias`), JSON values that must be finite,
+references to profile versions, error bodies.
 
 Numbers are strict: a JSON string or boolean is never read as a number (`"1.5"`, `false`),
 and a JSON float is never read as an integer (`1.0`)."""
@@ -8,7 +9,7 @@ from __future__ import annotations
 
 import math
 from datetime import datetime
-from typing import Annotated, Any
+from typing import Annotated, Any, NamedTuple
 
 from pydantic import AfterValidator, BaseModel, Field, Strict, TypeAdapter, ValidationError
 
@@ -23,8 +24,14 @@ ProfileName = Annotated[str, Field(min_length=1, max_length=64, pattern=PROFILE_
 MAX_VERSION = 2**31 - 1
 Version = Annotated[int, Field(ge=1, le=MAX_VERSION, description="Version number (1, 2, ...).")]
 
+#: An alias: like a name but starting with a letter or `_` (so `name@2` is always a version).
+ALIAS_PATTERN = r"^[A-Za-z_][A-Za-z0-9_.\-]*$"
+AliasName = Annotated[str, Field(min_length=1, max_length=64, pattern=ALIAS_PATTERN,
+                                 examples=["challenger"])]
+
 _NAME: TypeAdapter[str] = TypeAdapter(ProfileName)
 _VERSION: TypeAdapter[int] = TypeAdapter(Version)
+_ALIAS: TypeAdapter[str] = TypeAdapter(AliasName)
 
 
 def _reason(exc: ValidationError) -> str:
@@ -40,15 +47,36 @@ def parse_version(text: str) -> int:
         raise ValueError(f"version {text!r}: {_reason(exc)}") from None
 
 
-def parse_profile_ref(text: str) -> tuple[str, int | None]:
-    """`name` or `name@version` -> `(name, version or None)`; ValueError says what is wrong."""
-    name, at, version = text.partition("@")
+class ParsedRef(NamedTuple):
+    """A parsed profile reference: the name and at most one of a version and an alias."""
+
+    name: str
+    version: int | None
+    alias: str | None
+
+
+def parse_alias(text: str) -> str:
+    """An alias from its text (a path segment, the part after `@`); ValueError says why not."""
+    try:
+        return _ALIAS.validate_python(text)
+    except ValidationError as exc:
+        raise ValueError(f"alias {text!r}: {_reason(exc)}") from None
+
+
+def parse_profile_ref(text: str) -> ParsedRef:
+    """`name`, `name@version` or `name@alias` -> `ParsedRef`; ValueError says what is wrong.
+    After `@`, text starting with a digit is a version, anything else an alias."""
+    name, at, rest = text.partition("@")
     try:
         name = _NAME.validate_python(name)
     except ValidationError as exc:
-        raise ValueError(f"profile must be 'name' or 'name@version', got {text!r}: name "
-                         f"{_reason(exc)}") from None
-    return name, parse_version(version) if at else None
+        raise ValueError(f"profile must be 'name', 'name@version' or 'name@alias', got "
+                         f"{text!r}: name {_reason(exc)}") from None
+    if not at:
+        return ParsedRef(name, None, None)
+    if rest[:1].isdigit() or rest[:1] in ("", "-", "+"):
+        return ParsedRef(name, parse_version(rest), None)
+    return ParsedRef(name, None, parse_alias(rest))
 
 
 def _profile_ref(text: str) -> str:
@@ -56,11 +84,13 @@ def _profile_ref(text: str) -> str:
     return text
 
 
-#: `name` or `name@version` in a request body or query, checked by `parse_profile_ref`. The
-#: schema's pattern (what clients and schema-driven generators see) admits a subset of it.
+#: `name`, `name@version` or `name@alias` in a request body or query, checked by
+#: `parse_profile_ref`. The schema's pattern (what clients and schema-driven generators see)
+#: admits a subset of it.
 ProfileRefText = Annotated[str, Field(
-    max_length=80, examples=["lidar", "lidar@2"],
-    json_schema_extra={"pattern": r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}(@[1-9][0-9]{0,8})?$"}),
+    max_length=140, examples=["lidar", "lidar@2", "lidar@champion"],
+    json_schema_extra={"pattern": r"^[A-Za-z0-9_][A-Za-z0-9_.\-]{0,63}"
+                                  r"(@([1-9][0-9]{0,8}|[A-Za-z_][A-Za-z0-9_.\-]{0,63}))?$"}),
     AfterValidator(_profile_ref)]
 
 

@@ -1,5 +1,8 @@
 """Persistence: SQLAlchemy tables and the `Store` repository."""
 
+from app.store.aliases import CHAMPION, AliasRecord
+from app.store.audit import AUDIT_ACTIONS, AuditEntry, AuditRecord
+from app.store.health import HealthChunk, HealthOverview, HealthRecord
 from app.store.records import (
     CleanReport,
     JobLostError,
@@ -10,5 +13,6 @@ from app.store.records import (
 )
 from app.store.repository import Store
 
-__all__ = ["CleanReport", "JobLostError", "JobRecord", "NameSummary", "NotFoundError",
-           "ProfileRecord", "Store"]
+__all__ = ["AUDIT_ACTIONS", "CHAMPION", "AliasRecord", "AuditEntry", "AuditRecord",
+           "CleanReport", "HealthChunk", "HealthOverview", "HealthRecord", "JobLostError",
+           "JobRecord", "NameSummary", "NotFoundError", "ProfileRecord", "Store"]

@@ -24,7 +24,7 @@ from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.store.files import DUMP_NAME, LOCK_FILE, UPLOAD_PREFIX, flocked, tighten
-from app.store.models import DumpRow, JobRow, ProfileRow, utcnow
+from app.store.models import DumpRow, HealthRow, JobRow, ProfileRow, utcnow
 from app.store.records import CleanReport, DumpRecord, NotFoundError
 
 _CHUNK = 1 << 20
@@ -129,10 +129,12 @@ class DumpFiles:
 
 
 def _referenced():
-    """SELECT of every digest a job or a profile version references (never NULL)."""
+    """SELECT of every digest a job, a profile version or kept feedback references (never
+    NULL)."""
     return union(select(JobRow.dump_sha256),
                  select(JobRow.gt_sha256).where(JobRow.gt_sha256.is_not(None)),
-                 select(ProfileRow.dump_sha256).where(ProfileRow.dump_sha256.is_not(None)))
+                 select(ProfileRow.dump_sha256).where(ProfileRow.dump_sha256.is_not(None)),
+                 select(HealthRow.dump_sha256).where(HealthRow.dump_sha256.is_not(None)))
 
 
 def _dump_files(directory: Path) -> Iterator[Path]:

@@ -19,6 +19,7 @@ from sqlalchemy import String, cast, func, or_, select, update
 from sqlalchemy.exc import IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.store.audit import AuditEntry
 from app.store.models import ActiveRow, JobRow, ProfileRow, utcnow
 from app.store.records import JobLostError, JobRecord, NotFoundError, ProfileRecord
 
@@ -39,19 +40,33 @@ class JobQueue:
                         ) -> tuple[ProfileRecord, str | None]:
         raise NotImplementedError
 
+    def _audit(self, s: Session, entry: AuditEntry | None) -> None:
+        raise NotImplementedError
+
+    def _point_alias(self, s: Session, name: str, alias: str, profile_id: int,
+                     version: int) -> Any:
+        raise NotImplementedError
+
     def create_job(self, name: str, options: dict[str, Any], dump_sha256: str,
-                   gt_sha256: str | None = None, activate: bool = False) -> JobRecord:
+                   gt_sha256: str | None = None, activate: bool = False,
+                   audit: AuditEntry | None = None, alias: str | None = None) -> JobRecord:
         """Queue a fit job of `name` on a stored dump; with `activate`, note the active pointer
-        now (the job activates its version only if the pointer has not moved when it lands)."""
+        now (the job activates its version only if the pointer has not moved when it lands).
+        `audit` is recorded with the job's id in its detail, in the same transaction; `alias`
+        (not champion) is pointed at the version when it lands."""
         row = JobRow(id=uuid.uuid4().hex, name=name, state="queued", progress=0.0,
                      options=json.dumps(options, sort_keys=True), dump_sha256=dump_sha256,
-                     gt_sha256=gt_sha256, activate=activate, attempts=0, created_at=utcnow())
+                     gt_sha256=gt_sha256, activate=activate, attempts=0, created_at=utcnow(),
+                     alias=alias)
         with self._tx() as s:
             if activate:
                 seen = s.execute(select(ActiveRow.version, ActiveRow.generation)
                                  .where(ActiveRow.name == name)).first()
                 row.seen_version, row.seen_generation = tuple(seen) if seen else (0, 0)
             s.add(row)
+            if audit is not None:
+                self._audit(s, AuditEntry(audit.action, audit.target, audit.token_id,
+                                          {**audit.detail, "job_id": row.id}))
         return JobRecord.from_row(row, None)
 
     def get_job(self, job_id: str) -> JobRecord:
@@ -126,6 +141,8 @@ class JobQueue:
                     record, refused = self._insert_version(
                         s, job.name, profile_json, job.dump_sha256, job.id, job.activate,
                         job.seen_generation)
+                    if job.alias:
+                        self._point_alias(s, job.name, job.alias, record.id, record.version)
                     job.state, job.progress, job.stage = "succeeded", 1.0, "done"
                     job.finished_at, job.profile_id = utcnow(), record.id
                     if job.activate:

@@ -1,4 +1,5 @@
-"""SQLAlchemy 2 tables of the profile store: profile versions, active pointers, dumps, fit jobs."""
+"""SQLAlchemy 2 tables of the profile store: profile versions, active pointers, aliases, dumps,
+fit jobs, the audit log and feedback health."""
 
 from __future__ import annotations
 
@@ -112,6 +113,56 @@ class JobRow(Base):
     seen_version: Mapped[int | None]
     seen_generation: Mapped[int | None]
     activation: Mapped[str | None] = mapped_column(Text)
+    #: An alias the landed version is pointed at (`challenger` for an automatic refit).
+    alias: Mapped[str | None] = mapped_column(String(64))
+
+
+class AliasRow(Base):
+    """A mutable alias of a profile name (`challenger`, any name but `champion`, which is the
+    active pointer) pointing at one immutable version."""
+
+    __tablename__ = "profile_aliases"
+
+    name: Mapped[str] = mapped_column(String(64), primary_key=True)
+    alias: Mapped[str] = mapped_column(String(64), primary_key=True)
+    profile_id: Mapped[int] = mapped_column(ForeignKey("profiles.id"))
+    version: Mapped[int]
+    updated_at: Mapped[Created]
+
+
+class AuditRow(Base):
+    """One write, appended once it is done and never changed: when, which action on what,
+    which admin token (by its id, never the token) and the write's details (JSON)."""
+
+    __tablename__ = "audit_log"
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    at: Mapped[datetime] = mapped_column(default=utcnow, index=True)
+    action: Mapped[str] = mapped_column(String(32))
+    target: Mapped[str] = mapped_column(String(200))
+    token_id: Mapped[str] = mapped_column(String(64))
+    detail: Mapped[str] = mapped_column(Text)
+
+
+class HealthRow(Base):
+    """A chunk of feedback frames for one profile version, with the version's cumulative sums
+    (`calibrators.health.HealthCounts`) and drift-test state (`DriftMonitor`) after it, so a
+    window or "since activation" is the difference of two rows."""
+
+    __tablename__ = "feedback_health"
+    __table_args__ = (UniqueConstraint("profile_id", "seq", name="uq_health_profile_seq"),)
+
+    id: Mapped[int] = mapped_column(primary_key=True, autoincrement=True)
+    profile_id: Mapped[int] = mapped_column(ForeignKey("profiles.id"), index=True)
+    seq: Mapped[int]
+    created_at: Mapped[Created]
+    frames_total: Mapped[int]
+    counts: Mapped[str] = mapped_column(Text)
+    drift: Mapped[str] = mapped_column(Text)
+    status: Mapped[str] = mapped_column(String(16))
+    alarms_total: Mapped[int] = mapped_column(default=0)
+    #: The feedback frames themselves, kept while auto_refit is on (last row of a request).
+    dump_sha256: Mapped[str | None] = mapped_column(ForeignKey("dumps.sha256"))
 
 
 def add_missing_columns(conn: Connection) -> list[str]:

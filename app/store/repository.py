@@ -12,7 +12,8 @@ result counts (a re-queued job's late result is refused with JobLostError). A jo
 with `activate` remembers the active pointer it saw and, when it lands, moves the pointer
 only if nobody moved it since (compare-and-set in the landing transaction). Uploaded dumps
 and their clean-up: app/store/dumps.py; fit jobs: app/store/jobs.py; private file modes:
-app/store/files.py.
+app/store/files.py; aliases: app/store/aliases.py; the audit log of writes:
+app/store/audit.py; feedback health: app/store/health.py.
 """
 
 from __future__ import annotations
@@ -35,8 +36,11 @@ from sqlalchemy import (
 from sqlalchemy.exc import DBAPIError, IntegrityError
 from sqlalchemy.orm import Session, sessionmaker
 
+from app.store.aliases import AliasStore
+from app.store.audit import AuditEntry, AuditLog
 from app.store.dumps import DumpFiles
 from app.store.files import private_dir, private_sqlite
+from app.store.health import HealthStore
 from app.store.jobs import JobQueue
 from app.store.models import (
     ActiveRow,
@@ -69,7 +73,7 @@ def _lock_key(scope: str, name: str) -> int:
     return int.from_bytes(digest[:8], "big", signed=True)
 
 
-class Store(DumpFiles, JobQueue):
+class Store(AuditLog, AliasStore, DumpFiles, JobQueue, HealthStore):
     """Repository over the database at `url`, with uploaded files under `dumps_dir`."""
 
     def __init__(self, url: str, dumps_dir: Path) -> None:
@@ -223,8 +227,10 @@ class Store(DumpFiles, JobQueue):
         with self._session() as s:
             return dict(s.execute(select(ActiveRow.name, ActiveRow.version)).all())
 
-    def activate(self, name: str, version: int) -> ProfileRecord:
-        """Make `version` the active one of `name`, atomically (rolling back = older version)."""
+    def activate(self, name: str, version: int, audit: AuditEntry | None = None
+                 ) -> ProfileRecord:
+        """Make `version` the active one of `name`, atomically (rolling back = older version),
+        recording `audit` in the same transaction."""
         with self._tx() as s:
             self._serialize(s, "profile", name)
             row = s.scalar(select(ProfileRow).where(ProfileRow.name == name,
@@ -236,6 +242,7 @@ class Store(DumpFiles, JobQueue):
                 s.add(ActiveRow(name=name, profile_id=row.id, version=version))
             else:
                 _move(active, row)
+            self._audit(s, audit)
         return _profile(row, version)
 
     def count_profiles(self) -> int:

@@ -68,7 +68,7 @@ def test_a_bad_version_in_a_path_is_a_422_naming_it(client, version):
     assert _locs(r) == [["path", "version"]]
 
 
-@pytest.mark.parametrize("ref", [f"lidar@{HUGE}", "lidar@0", "lidar@-1", "lidar@x", "lidar@",
+@pytest.mark.parametrize("ref", [f"lidar@{HUGE}", "lidar@0", "lidar@-1", "lidar@x!", "lidar@",
                                  "lidar@1@2", "..", ".", "-lidar", ""])
 def test_a_bad_profile_reference_is_a_422_naming_profile_everywhere(client, detection,
                                                                     dump_given, ref):

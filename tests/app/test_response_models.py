@@ -210,6 +210,63 @@ CASES = [
 ]
 
 
+# -- issue 14: feedback, health, aliases, audit ---------------------------------------------
+FB, HEALTH, AUDIT = "/v1/feedback", "/v1/profiles/{name}/health", "/v1/audit"
+ALIASES, ALIAS = "/v1/profiles/{name}/aliases", "/v1/profiles/{name}/aliases/{alias}"
+
+
+def _feedback(w: World, n: int = 2, **kw: Any) -> dict:
+    from tests.app.feedback_frames import feedback_frames
+
+    frames = feedback_frames(w.dump.select_frames(np.arange(w.dump.n_frames) < n))
+    return {"url": FB, "headers": ADMIN, "json": {"frames": frames}, **kw}
+
+
+def _aliased(w: World, request: dict) -> dict:
+    """`request`, after alias `gone` of lidar was set."""
+    w.clients["seeded"].put("/v1/profiles/lidar/aliases/gone", headers=ADMIN,
+                            json={"version": 1})
+    return request
+
+
+CASES += [
+    Case("POST", FB, 200, _feedback),
+    Case("POST", FB, 401, lambda w: {**_feedback(w), "headers": {}}),
+    Case("POST", FB, 403, lambda w: {**_feedback(w), "headers": WRONG_TOKEN}),
+    Case("POST", FB, 404, lambda w: _feedback(w, json={"profile": "nope", "frames": [
+        {"detections": [], "ground_truth": []}]})),
+    Case("POST", FB, 413, lambda w: _feedback(w, 10), client="small"),
+    Case("POST", FB, 415, url(FB, headers={**ADMIN, **TEXT}, content=b"{}")),
+    Case("POST", FB, 422, url(FB, headers=ADMIN, files={"dump": ("x.npz", b"nope")})),
+    Case("GET", HEALTH, 200, url("/v1/profiles/lidar/health")),
+    Case("GET", HEALTH, 404, url("/v1/profiles/nope/health")),
+    Case("GET", HEALTH, 422, url("/v1/profiles/lidar/health", params={"version": 0})),
+    Case("GET", ALIASES, 200, url("/v1/profiles/lidar/aliases")),
+    Case("GET", ALIASES, 404, url("/v1/profiles/nope/aliases")),
+    Case("GET", ALIASES, 422, url("/v1/profiles/no*pe/aliases")),
+    Case("PUT", ALIAS, 200, url("/v1/profiles/lidar/aliases/challenger", headers=ADMIN,
+                                json={"version": 1})),
+    Case("PUT", ALIAS, 401, url("/v1/profiles/lidar/aliases/c", json={"version": 1})),
+    Case("PUT", ALIAS, 403, url("/v1/profiles/lidar/aliases/c", headers=WRONG_TOKEN,
+                                json={"version": 1})),
+    Case("PUT", ALIAS, 404, url("/v1/profiles/lidar/aliases/c", headers=ADMIN,
+                                json={"version": 9})),
+    Case("PUT", ALIAS, 415, url("/v1/profiles/lidar/aliases/c", headers={**ADMIN, **TEXT},
+                                content=b"{}")),
+    Case("PUT", ALIAS, 422, url("/v1/profiles/lidar/aliases/c", headers=ADMIN,
+                                json={"version": 0})),
+    Case("DELETE", ALIAS, 200, lambda w: _aliased(w, {
+        "url": "/v1/profiles/lidar/aliases/gone", "headers": ADMIN})),
+    Case("DELETE", ALIAS, 401, url("/v1/profiles/lidar/aliases/gone")),
+    Case("DELETE", ALIAS, 403, url("/v1/profiles/lidar/aliases/gone", headers=WRONG_TOKEN)),
+    Case("DELETE", ALIAS, 404, url("/v1/profiles/lidar/aliases/ghost", headers=ADMIN)),
+    Case("DELETE", ALIAS, 422, url("/v1/profiles/lidar/aliases/champion", headers=ADMIN)),
+    Case("GET", AUDIT, 200, url(AUDIT, headers=ADMIN)),
+    Case("GET", AUDIT, 401, url(AUDIT)),
+    Case("GET", AUDIT, 403, url(AUDIT, headers=WRONG_TOKEN)),
+    Case("GET", AUDIT, 422, url(AUDIT, headers=ADMIN, params={"limit": 0})),
+]
+
 def _store(settings: Settings, *profiles: tuple[str, str]) -> Store:
     store = Store(settings.sqlalchemy_url, settings.dumps_dir)
     for name, text in profiles:
