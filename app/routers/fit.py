@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from typing import Annotated
 
 from fastapi import APIRouter, File, Form, UploadFile, status
@@ -19,7 +20,21 @@ from calibrators.options import FitOptions, OptionError
 
 router = APIRouter(prefix="/v1", tags=["fit"])
 
+_BOX = {"sample_token": "sample-0", "translation": [10.0, 5.0, 0.8], "size": [1.9, 4.5, 1.6],
+        "rotation": [1.0, 0.0, 0.0, 0.0], "velocity": [0.0, 0.0],
+        "ego_translation": [10.0, 5.0, 0.8], "num_pts": 12, "detection_name": "car",
+        "detection_score": 0.8, "attribute_name": ""}
+#: A request the route accepts (202) with nothing but text: a one-box nuScenes results file
+#: and its ground truth, as the file parts' contents (a real fit needs thousands of boxes;
+#: this job fails with the reason, visible at its status URL).
+_EXAMPLE = {"name": "example",
+            "results": json.dumps({"meta": {"use_lidar": True}, "results": {"sample-0": [_BOX]}}),
+            "gt": json.dumps({"meta": {}, "results": {"sample-0": [_BOX]}})}
+
 @router.post("/fit", status_code=status.HTTP_202_ACCEPTED,
+             openapi_extra={"requestBody": {"content": {"multipart/form-data": {
+                 "examples": {"nuscenes": {"summary": "one-box nuScenes results + GT",
+                                           "value": _EXAMPLE}}}}}},
              responses={202: {"model": FitAccepted}, 401: {"model": ErrorResponse},
                         403: {"model": ErrorResponse}, 413: {"model": ErrorResponse},
                         422: {"model": ErrorResponse}})
