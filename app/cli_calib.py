@@ -29,13 +29,33 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit = subparsers.add_parser(
         "fit", help="fit a calibration profile on a validation dump",
         description="Match detections to ground truth, fit the temperature and the per-class "
-                    "depth k, print the before/after table and write the profile JSON.")
+                    "depth k, print the before/after table and write the profile JSON. A "
+                    "Parquet dataset folder (detcal convert) is fit streamed, in bounded "
+                    "memory, with the thesis methods (temperature, depth, gaussian: pass "
+                    "--calibration 0 or name them), optionally on Dask (--dask).")
     _add_input(fit)
     fit.add_argument("--out", default="profile.json", help="profile JSON to write "
                      "(default: %(default)s)")
     add_fit_options(fit)
+    fit.add_argument("--dask", metavar="SPEC",
+                     help="Parquet dataset only: run the per-part work on Dask: local[:N] "
+                          "starts a LocalCluster of N worker processes (default 2), "
+                          "tcp://host:port connects to a scheduler (needs detcal[dask])")
     fit.add_argument("--quiet", action="store_true", help="no progress on stderr")
     fit.set_defaults(func=run_fit)
+
+    conv = subparsers.add_parser(
+        "convert", help="write a validation dump as a Parquet dataset",
+        description="Write an NPZ dump (or a nuScenes results JSON with --nuscenes-gt) as a "
+                    "Parquet dataset folder (docs/formats.md): detections and ground truth "
+                    "in parts of whole frames, for streamed and Dask fits.")
+    _add_input(conv)
+    conv.add_argument("out_dir", metavar="OUT_DIR", help="dataset folder to create")
+    conv.add_argument("--rows-per-part", type=int, default=None,
+                      help="detections per part file (default: 1,000,000)")
+    conv.add_argument("--float32", action="store_true",
+                      help="store floats as float32 (half the size, rounded values)")
+    conv.set_defaults(func=run_convert)
 
     ev = subparsers.add_parser(
         "evaluate", help="mAP and calibration metrics of a dump",
@@ -99,13 +119,49 @@ def run_fit(args: argparse.Namespace) -> int:
     from calibrators import ProfileReport, fit_profile, format_table
 
     options = fit_options_of(args)
-    dump, sha = load_input(args.dump, args.nuscenes_gt)
     progress = None if args.quiet else _progress
-    profile = fit_profile(dump, options, dump_sha256=sha, progress=progress)
+    if Path(args.dump).is_dir():
+        profile = _fit_dataset(args, options, progress)
+    else:
+        if args.dask:
+            raise CliError("--dask needs a Parquet dataset folder (detcal convert DUMP OUT_DIR)")
+        dump, sha = load_input(args.dump, args.nuscenes_gt)
+        profile = fit_profile(dump, options, dump_sha256=sha, progress=progress)
     _write_text(args.out, profile.to_json())
     print(format_table(ProfileReport.from_dict(profile.report)))
     print(f"wrote {args.out}: T = {profile.temperature:.4g}, pooled k = {profile.pooled_k:.4g}, "
           f"cov_source {profile.cov_source}", file=sys.stderr)
+    return 0
+
+
+def _fit_dataset(args: argparse.Namespace, options: FitOptions,
+                 progress: Callable[[str, float], None] | None) -> Any:
+    """The streamed fit of a Parquet dataset folder, here or on Dask (`--dask`)."""
+    from calibrators.fit_stream import fit_profile_stream
+
+    if args.nuscenes_gt:
+        raise CliError("--nuscenes-gt does not apply to a Parquet dataset folder")
+    if not args.dask:
+        return fit_profile_stream(args.dump, options, progress=progress)
+    from calibrators.distributed import dask_client
+
+    try:
+        with dask_client(args.dask) as client:
+            return fit_profile_stream(args.dump, options, client=client, progress=progress)
+    except ImportError as exc:
+        raise CliError(f"--dask: {exc}") from None
+
+
+def run_convert(args: argparse.Namespace) -> int:
+    """`detcal convert`: write a dump as a Parquet dataset folder."""
+    from calibrators.io import save_parquet
+
+    dump, sha = load_input(args.dump, args.nuscenes_gt)
+    rows = {} if args.rows_per_part is None else {"rows_per_part": args.rows_per_part}
+    out = save_parquet(args.out_dir, dump, float_dtype="float32" if args.float32 else "float64",
+                       source_sha256=sha, **rows)
+    print(f"wrote {out}: {dump.n_frames} frames, {dump.n_detections} detections, "
+          f"{len(dump.gt_labels)} ground-truth boxes", file=sys.stderr)
     return 0
 
 

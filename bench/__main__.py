@@ -4,6 +4,7 @@ import importlib
 
 BENCHMARKS = (
     "bench.bench_fit",
+    "bench.bench_stream_fit",
     "bench.bench_match",
     "bench.bench_detectors",
     "bench.bench_service",

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from calibrators.checks import as_float_array, check_covariances, check_length
-from calibrators.depth_nll import _binned, _fit_k, _Terms
+from calibrators.depth_nll import _Binned, _binned, _fit_k, _Terms
 from calibrators.exceptions import FieldError, check_fitted
 
 
@@ -60,8 +60,35 @@ class DepthScaler:
         r, cov, d, keys, codes, terms = fit_inputs(residuals, covariances, distances, classes)
         n, dim = r.shape
         groups, pooled = _binned(terms, codes, len(keys))
-        xtol = float(self.xtol)
+        k_of, pooled_k = self._fit_binned(groups, pooled, keys, min_samples, bounds)
+        exact = terms.group_nll(k_of, codes)
+        self.nll_ = {key: (None if key in self.fallback_classes_ else float(exact[g]))
+                     for g, key in enumerate(keys)}
+        self.pooled_k_, self.pooled_nll_ = pooled_k, terms.nll(pooled_k)
+        self.n_dims_ = dim
+        return self
 
+    def fit_binned(self, groups: list[_Binned], pooled: _Binned, keys: list, n_dims: int
+                   ) -> DepthScaler:
+        """Fit from binned statistics (`calibrators.depth_nll.BinSums.finish()`) of the
+        groups named `keys` and of all of them pooled, as `fit` does after binning: the same
+        `k_`, `pooled_k_`, `fallback_classes_`, `n_samples_` (a streamed fit merges the
+        statistics of chunks of the data). `nll_` and `pooled_nll_` are None here (they need
+        the data once more). Returns self."""
+        min_samples = _check_min_samples(self.min_samples)
+        bounds = _check_bounds(self.bounds)
+        if pooled.n == 0:
+            raise FieldError("residuals", "residuals is empty: no sample to fit k on")
+        _, self.pooled_k_ = self._fit_binned(groups, pooled, keys, min_samples, bounds)
+        self.nll_ = {key: None for key in keys}
+        self.pooled_nll_ = None
+        self.n_dims_ = int(n_dims)
+        return self
+
+    def _fit_binned(self, groups: list[_Binned], pooled: _Binned, keys: list, min_samples: int,
+                    bounds: tuple[float, float]) -> tuple[np.ndarray, float]:
+        """Set `k_`, `n_samples_`, `fallback_classes_`; returns (k per group, pooled k)."""
+        xtol = float(self.xtol)
         pooled_k = _fit_k(pooled, bounds, xtol, "pooled")
         k_of = np.full(len(keys), pooled_k)
         self.k_, self.n_samples_, self.fallback_classes_ = {}, {}, []
@@ -72,12 +99,7 @@ class DepthScaler:
             else:
                 k_of[g] = _fit_k(stats, bounds, xtol, key)
             self.k_[key] = float(k_of[g])
-        exact = terms.group_nll(k_of, codes)
-        self.nll_ = {key: (None if key in self.fallback_classes_ else float(exact[g]))
-                     for g, key in enumerate(keys)}
-        self.pooled_k_, self.pooled_nll_ = pooled_k, terms.nll(pooled_k)
-        self.n_dims_ = dim
-        return self
+        return k_of, pooled_k
 
     def transform(self, covariances: np.ndarray | None, distances: np.ndarray,
                   classes: np.ndarray) -> np.ndarray:

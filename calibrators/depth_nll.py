@@ -139,35 +139,90 @@ class _Binned:
         return float(value) if np.isfinite(value) else np.inf
 
 
+@dataclass(frozen=True)
+class BinSums:
+    """Additive per-group sums behind `_Binned` (module docstring of `calibrators.depth`).
+
+    `n [G]` samples and `const [G]` (sum of the k-free terms) per group, and `sums [4, G,
+    1 + B]`: the sums of 1, a, b and a·b per group and bin; column 0 holds the pairs with
+    `a = 0`, column `i >= 1` the raw log-bin key `low - 1 + i` (`_raw_key`). Sums over disjoint
+    parts of the data add up (`+`, which also re-applies the grid's floor of `_OCTAVES`
+    octaves below the largest key), so a dataset can be binned chunk by chunk; `finish()`
+    gives exactly the statistics of binning all of it at once.
+    """
+
+    n_dims: int
+    n: np.ndarray
+    const: np.ndarray
+    low: int
+    sums: np.ndarray
+
+    @property
+    def top(self) -> int:
+        return self.low + self.sums.shape[2] - 2
+
+    @classmethod
+    def build(cls, terms: _Terms, codes: np.ndarray, n_groups: int) -> BinSums:
+        """Sums of the terms of samples in groups `codes [N]` (0 .. n_groups - 1)."""
+        n_dims = terms.eig.shape[0]
+        near = terms.dist == 0
+        with np.errstate(divide="ignore"):
+            row_const = n_dims * np.log(terms.dist)
+        if near.any():  # d = 0: Σ is regular there (checked in build); its terms are k-free
+            eig, sq = terms.eig[:, near], terms.sq[:, near]
+            row_const[near] = (np.log(eig) + sq / eig).sum(axis=0)
+            far = ~near
+            eig, sq, dist, far_codes = (terms.eig[:, far], terms.sq[:, far], terms.dist[far],
+                                        codes[far])
+        else:
+            eig, sq, dist, far_codes = terms.eig, terms.sq, terms.dist, codes
+        const = np.bincount(codes, weights=row_const, minlength=n_groups)[:n_groups]
+        n = np.bincount(codes, minlength=n_groups)[:n_groups]
+        a, b = eig / dist, sq / dist  # [D, M]
+        key, n_bins, low = _log_bin_low(a)
+        key += (far_codes * (n_bins + 1))[None, :]
+        key, a, b = key.ravel(), a.ravel(), b.ravel()
+        size = n_groups * (n_bins + 1)
+        sums = np.stack([np.bincount(key, weights=w, minlength=size).reshape(n_groups, n_bins + 1)
+                         for w in (None, a, b, a * b)])
+        return cls(n_dims, n, const, low, sums)
+
+    @classmethod
+    def build_empty(cls, n_dims: int, n_groups: int) -> BinSums:
+        """The sums of no sample."""
+        return cls(n_dims, np.zeros(n_groups, dtype=np.int64), np.zeros(n_groups), 0,
+                   np.zeros((4, n_groups, 1)))
+
+    def __add__(self, other: BinSums) -> BinSums:
+        if self.n_dims != other.n_dims or self.n.shape != other.n.shape:
+            raise ValueError("BinSums of different dimensions or groups cannot be added")
+        parts = [p for p in (self, other) if p.sums.shape[2] > 1]
+        if not parts:
+            return BinSums(self.n_dims, self.n + other.n, self.const + other.const, 0,
+                           self.sums + other.sums)
+        top = max(p.top for p in parts)
+        low = max(min(p.low for p in parts), top - _BINS + 1)
+        sums = np.zeros((4, len(self.n), top - low + 2))
+        for p in (self, other):
+            sums[:, :, 0] += p.sums[:, :, 0]
+            if p.sums.shape[2] > 1:  # key -> column, keys under the floor into its bin
+                cols = np.maximum(np.arange(p.low, p.top + 1), low) - low + 1
+                np.add.at(sums, (slice(None), slice(None), cols), p.sums[:, :, 1:])
+        return BinSums(self.n_dims, self.n + other.n, self.const + other.const, low, sums)
+
+    def finish(self) -> tuple[list[_Binned], _Binned]:
+        """`_Binned` statistics of every group and of all groups pooled."""
+        groups = [_Binned.from_sums(int(self.n[g]), self.n_dims, float(self.const[g]),
+                                    *self.sums[:, g]) for g in range(len(self.n))]
+        pooled = _Binned.from_sums(int(self.n.sum()), self.n_dims, float(self.const.sum()),
+                                   *self.sums.sum(axis=1))
+        return groups, pooled
+
+
 def _binned(terms: _Terms, codes: np.ndarray, n_groups: int) -> tuple[list[_Binned], _Binned]:
     """`_Binned` statistics of every group `g` (`codes [N] == g`) and of all samples pooled,
     on one logarithmic grid of `a = λ/d` (`_log_bin`)."""
-    n_dims = terms.eig.shape[0]
-    near = terms.dist == 0
-    with np.errstate(divide="ignore"):
-        row_const = n_dims * np.log(terms.dist)
-    if near.any():  # d = 0: Σ is regular there (checked in build); its terms are k-free
-        eig, sq = terms.eig[:, near], terms.sq[:, near]
-        row_const[near] = (np.log(eig) + sq / eig).sum(axis=0)
-        far = ~near
-        eig, sq, dist, far_codes = terms.eig[:, far], terms.sq[:, far], terms.dist[far], codes[far]
-    else:
-        eig, sq, dist, far_codes = terms.eig, terms.sq, terms.dist, codes
-    const = np.bincount(codes, weights=row_const, minlength=n_groups)
-    n = np.bincount(codes, minlength=n_groups)
-
-    a, b = eig / dist, sq / dist  # [D, M]
-    key, n_bins = _log_bin(a)  # bin 0 holds a = 0 (Σ None or singular): log k + b/k, exact
-    key += (far_codes * (n_bins + 1))[None, :]
-    key, a, b = key.ravel(), a.ravel(), b.ravel()
-    size = n_groups * (n_bins + 1)
-    sums = [np.bincount(key, weights=w, minlength=size).reshape(n_groups, n_bins + 1)
-            for w in (None, a, b, a * b)]
-    groups = [_Binned.from_sums(int(n[g]), n_dims, float(const[g]), *(x[g] for x in sums))
-              for g in range(n_groups)]
-    pooled = _Binned.from_sums(int(n.sum()), n_dims, float(const.sum()),
-                               *(x.sum(axis=0) for x in sums))
-    return groups, pooled
+    return BinSums.build(terms, codes, n_groups).finish()
 
 
 def _log_bin(a: np.ndarray) -> tuple[np.ndarray, int]:
@@ -180,16 +235,27 @@ def _log_bin(a: np.ndarray) -> tuple[np.ndarray, int]:
     `_OCTAVES` octaves below the largest; anything smaller shares the lowest bin (such `a` are
     below 1e-19 of the largest, negligible next to any k Brent tries).
     """
-    key = a.view(np.int64) >> (52 - _MANTISSA_BITS)
+    key, n_bins, _ = _log_bin_low(a)
+    return key, n_bins
+
+
+def _log_bin_low(a: np.ndarray) -> tuple[np.ndarray, int, int]:
+    """`_log_bin(a)` and the raw key (`_raw_key`) of bin 1 (0 when no `a > 0`)."""
+    key = _raw_key(a)
     positive = a > 0
     if not positive.any():
-        return np.zeros(a.shape, dtype=np.int64), 0
+        return np.zeros(a.shape, dtype=np.int64), 0, 0
     top = int(key.max())
     low = max(int(key[positive].min()), top - _BINS + 1)
     key -= low - 1
     np.maximum(key, 1, out=key)
     key[~positive] = 0
-    return key, top - low + 1
+    return key, top - low + 1, low
+
+
+def _raw_key(a: np.ndarray) -> np.ndarray:
+    """The float64 bits of `a` without the low mantissa bits: increasing with `a > 0`."""
+    return a.view(np.int64) >> (52 - _MANTISSA_BITS)
 
 
 def _fit_k(stats: _Binned | _Terms, bounds: tuple[float, float], xtol: float,

@@ -41,8 +41,13 @@ import numpy as np
 
 from calibrators.apply import apply_profile
 from calibrators.dump import Dump
-from calibrators.fit_regions import fit_covariance_stage, fit_region_stage
-from calibrators.fit_scores import fit_score_stage
+from calibrators.fit_regions import (
+    CovarianceFit,
+    RegionFit,
+    fit_covariance_stage,
+    fit_region_stage,
+)
+from calibrators.fit_scores import ScoreFit, fit_score_stage
 from calibrators.matched import (
     match_dump,
     resolve_cov_source,
@@ -108,33 +113,20 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
     conformal = calib is not None and opts.region_method != "gaussian"
     cov = fit_covariance_stage(train if conformal else (fit_part, matched), train, calib, dims,
                                source, opts.cov_method, min_samples)
-    profile = CalibrationProfile(
-        classes=tuple(dump.classes), score_mode=dump.score_mode,
-        temperature=scores.temperature, modulation=modulation, cov_dims=dims,
-        cov_source=source, depth_k=cov.depth_k, pooled_k=cov.pooled_k,
-        fallback_classes=cov.fallback_classes,
-        matching={"rule": "center_distance", "threshold": threshold},
-        min_score=min_score, report={},
-        provenance=_provenance(dump, fit_part, held_part, calib, matched.tp, dump_sha256, opts),
-        score_calibration={"method": scores.method, "params": scores.params},
-        covariance_scaling={"method": cov.method, "scale": cov.scale,
-                            "pooled_scale": cov.pooled_scale})
+    profile = base_profile(dump, opts, scores, cov, source, _provenance(
+        dump, fit_part, held_part, calib, matched.tp, dump_sha256, opts))
 
     report_progress("regions", 0.5)
     region = fit_region_stage(
         calib, None if calib is None else apply_profile(calib[0], profile).covariances, dims,
         opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges)
-    profile = replace(profile, regions=None if region is None else {
-        "method": region.method, "conformal": region.conformal})
+    profile = replace(profile, regions=_regions(region))
     if opts.other_sources:   # serve whatever covariance evidence a request carries
         report_progress("other sources", 0.55)
         others = _other_sources(profile, fit_part, matched, train, calib, opts, conformal)
         profile = replace(profile, sources=others or None)
-    profile = _versioned(profile)
-    selection = {"score": {"chosen": scores.method, "candidates": scores.candidates},
-                 "covariance": {"chosen": cov.method, "candidates": cov.candidates},
-                 "regions": None if region is None else {
-                     "chosen": region.method, "calibration_tps": region.n_calibration}}
+    profile = versioned(profile)
+    selection = selection_of(scores, cov, region)
 
     report_progress("report", 0.6)
     fit_summary = summarize(fit_part, profile, threshold=threshold, match=matched)
@@ -147,6 +139,45 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
     profile = replace(profile, report=report.to_dict())
     report_progress("done", 1.0)
     return profile
+
+
+def base_profile(dump: Dump, opts: FitOptions, scores: ScoreFit, cov: CovarianceFit,
+                 source: str, provenance: dict) -> CalibrationProfile:
+    """The profile of the fitted score and covariance stages (no regions, sources or report
+    yet); `dump` gives the classes and the score mode."""
+    return CalibrationProfile(
+        classes=tuple(dump.classes), score_mode=dump.score_mode,
+        temperature=scores.temperature, modulation=opts.modulation, cov_dims=opts.dims,
+        cov_source=source, depth_k=cov.depth_k, pooled_k=cov.pooled_k,
+        fallback_classes=cov.fallback_classes,
+        matching={"rule": "center_distance", "threshold": opts.threshold},
+        min_score=opts.min_score, report={}, provenance=provenance,
+        score_calibration={"method": scores.method, "params": scores.params},
+        covariance_scaling={"method": cov.method, "scale": cov.scale,
+                            "pooled_scale": cov.pooled_scale})
+
+
+def source_stage(cov: CovarianceFit, region: RegionFit | None) -> dict[str, Any]:
+    """One entry of `CalibrationProfile.sources`: the covariance and region stages of a
+    covariance source other than the profile's own."""
+    return {"depth_k": cov.depth_k, "pooled_k": cov.pooled_k,
+            "fallback_classes": list(cov.fallback_classes),
+            "covariance_scaling": {"method": cov.method, "scale": cov.scale,
+                                   "pooled_scale": cov.pooled_scale},
+            "regions": _regions(region)}
+
+
+def selection_of(scores: ScoreFit, cov: CovarianceFit, region: RegionFit | None
+                 ) -> dict[str, Any]:
+    """The report's `selection`: the chosen method of each stage and its candidates' scores."""
+    return {"score": {"chosen": scores.method, "candidates": scores.candidates},
+            "covariance": {"chosen": cov.method, "candidates": cov.candidates},
+            "regions": None if region is None else {
+                "chosen": region.method, "calibration_tps": region.n_calibration}}
+
+
+def _regions(region: RegionFit | None) -> dict[str, Any] | None:
+    return None if region is None else {"method": region.method, "conformal": region.conformal}
 
 
 def check_fit_input(dump: Dump, options: FitOptions) -> str:
@@ -206,10 +237,7 @@ def _other_sources(profile: CalibrationProfile, fit_part: Dump, matched: MatchRe
             continue                      # the dump cannot provide this source
         cov = fit_covariance_stage(train if conformal else (fit_part, matched), train, calib,
                                    opts.dims, source, opts.cov_method, opts.min_samples)
-        stage = {"depth_k": cov.depth_k, "pooled_k": cov.pooled_k,
-                 "fallback_classes": list(cov.fallback_classes),
-                 "covariance_scaling": {"method": cov.method, "scale": cov.scale,
-                                        "pooled_scale": cov.pooled_scale}}
+        stage = source_stage(cov, None)
         as_primary = replace(profile, cov_source=source, depth_k=cov.depth_k,
                              pooled_k=cov.pooled_k, fallback_classes=cov.fallback_classes,
                              covariance_scaling=stage["covariance_scaling"], regions=None,
@@ -218,13 +246,12 @@ def _other_sources(profile: CalibrationProfile, fit_part: Dump, matched: MatchRe
             calib, None if calib is None else apply_profile(calib[0], as_primary).covariances,
             opts.dims, opts.region_method if conformal else "gaussian", opts.min_group,
             opts.distance_edges)
-        stage["regions"] = None if region is None else {"method": region.method,
-                                                         "conformal": region.conformal}
+        stage["regions"] = _regions(region)
         out[source] = stage
     return out
 
 
-def _versioned(profile: CalibrationProfile) -> CalibrationProfile:
+def versioned(profile: CalibrationProfile) -> CalibrationProfile:
     """The profile as version 1 when its stages are the thesis methods (temperature, depth,
     gaussian): older readers load it and it serves exactly as version 1."""
     if (profile.score_method, profile.cov_method, profile.region_method) == (

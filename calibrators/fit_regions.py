@@ -26,8 +26,8 @@ from calibrators.matching import MatchResult
 from calibrators.shrinkage import ShrinkageDepthScaler
 from calibrators.vocab import COV_METHODS
 
-__all__ = ["CovarianceFit", "RegionFit", "fit_covariance_stage", "fit_region_stage",
-           "xy_mahalanobis"]
+__all__ = ["CovarianceFit", "RegionFit", "covariance_fit", "fit_covariance_stage",
+           "fit_region_stage", "xy_mahalanobis"]
 
 #: Shrinkage factors searched (a layer spread of mm² may need s in the thousands).
 SCALE_BOUNDS = (1e-3, 1e4)
@@ -95,7 +95,16 @@ def fit_covariance_stage(fit_on: tuple[Dump, MatchResult], train: tuple[Dump, Ma
     else:
         chosen = names[0]
     scaler = _fit_scaler(chosen, min_samples, *_tp_data(*fit_on, dims, source), source)
-    classes = fit_on[0].classes
+    return covariance_fit(scaler, fit_on[0].classes, chosen, candidates)
+
+
+def covariance_fit(scaler: Any, classes: tuple[str, ...], method: str,
+                   candidates: dict[str, dict[str, float | None]] | None = None
+                   ) -> CovarianceFit:
+    """The `CovarianceFit` of a fitted depth or shrinkage `scaler` (classes by name): every
+    class of `classes` gets its own k, or the pooled one when it had too few (or no)
+    matches."""
+    chosen = method
     fallback = {str(c) for c in scaler.fallback_classes_}
     s = getattr(scaler, "s_", {})
     pooled_s = float(getattr(scaler, "pooled_s_", 1.0))
@@ -106,7 +115,7 @@ def fit_covariance_stage(fit_on: tuple[Dump, MatchResult], train: tuple[Dump, Ma
         scale={c: float(s.get(c, pooled_s)) for c in classes} if chosen == "shrinkage" else {},
         pooled_scale=pooled_s,
         fallback_classes=tuple(c for c in classes if c not in scaler.k_ or c in fallback),
-        candidates=candidates)
+        candidates=candidates or {})
 
 
 def _fit_scaler(name: str, min_samples: int, res: np.ndarray, cov: np.ndarray | None,

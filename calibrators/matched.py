@@ -24,8 +24,8 @@ from calibrators.modulation import modulate_logits
 from calibrators.options import OptionError
 from calibrators.vocab import BOX_INDEX, COV_SOURCE_CHOICES, check_dims, wrap_angle
 
-__all__ = ["check_dims", "match_dump", "raw_covariances", "resolve_cov_source", "select_detections",
-           "split_frames", "tp_residuals", "ts_labels", "ts_logits"]
+__all__ = ["check_dims", "held_out_frames", "match_dump", "raw_covariances", "resolve_cov_source",
+           "select_detections", "split_frames", "tp_residuals", "ts_labels", "ts_logits"]
 
 
 def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> str:
@@ -127,7 +127,11 @@ def select_detections(dump: Dump, keep: np.ndarray) -> Dump:
     keep = np.asarray(keep, dtype=bool)
     return replace(dump, det_frame=dump.det_frame[keep], det_logits=dump.det_logits[keep],
                    det_boxes=dump.det_boxes[keep],
-                   det_cov=None if dump.det_cov is None else dump.det_cov[keep])
+                   det_cov=None if dump.det_cov is None else dump.det_cov[keep],
+                   det_hyp_boxes=None if dump.det_hyp_boxes is None
+                   else dump.det_hyp_boxes[keep],
+                   det_hyp_scores=None if dump.det_hyp_scores is None
+                   else dump.det_hyp_scores[keep])
 
 
 def split_frames(dump: Dump, holdout: float, seed: int) -> tuple[Dump, Dump | None]:
@@ -137,10 +141,18 @@ def split_frames(dump: Dump, holdout: float, seed: int) -> tuple[Dump, Dump | No
     """
     if holdout <= 0:
         return dump, None
-    n_hold = max(1, int(round(holdout * dump.n_frames)))
-    if n_hold >= dump.n_frames:
-        raise ValueError(f"holdout={holdout} leaves no frame to fit on "
-                         f"({dump.n_frames} frames)")
-    held = np.zeros(dump.n_frames, dtype=bool)
-    held[np.random.default_rng(seed).permutation(dump.n_frames)[:n_hold]] = True
+    held = held_out_frames(dump.n_frames, holdout, seed)
     return dump.select_frames(~held), dump.select_frames(held)
+
+
+def held_out_frames(n_frames: int, holdout: float, seed: int) -> np.ndarray:
+    """`[F]` bool: the frames `split_frames` holds out of `n_frames` (a streamed fit picks the
+    same ones). At least one when `holdout > 0`; at least one must remain to fit on."""
+    held = np.zeros(n_frames, dtype=bool)
+    if holdout <= 0:
+        return held
+    n_hold = max(1, int(round(holdout * n_frames)))
+    if n_hold >= n_frames:
+        raise ValueError(f"holdout={holdout} leaves no frame to fit on ({n_frames} frames)")
+    held[np.random.default_rng(seed).permutation(n_frames)[:n_hold]] = True
+    return held

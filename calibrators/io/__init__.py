@@ -4,6 +4,8 @@
 - `load_nuscenes` / `save_nuscenes`: a nuScenes results JSON plus (optionally) a ground-truth
   JSON in `DetectionBox` form; `calibrate_results_document` writes calibrated scores and
   covariances into an existing results document, keeping all its other fields.
+- `open_parquet` / `load_parquet` / `save_parquet` / `ParquetWriter`: a dump as a Parquet
+  dataset folder (parts of whole frames) for streamed and distributed fits.
 - `file_sha256`: content hash for provenance; `atomic_write`: a file replaced in one rename.
 """
 
@@ -17,6 +19,9 @@ from calibrators.io.nuscenes_write import (
     save_nuscenes,
     unbounded_none,
 )
+from calibrators.io.parquet import ParquetDataset, load_parquet, open_parquet
+from calibrators.io.parquet_write import ParquetWriter, save_parquet
 
-__all__ = ["atomic_write", "calibrate_results_document", "ellipses_json", "file_sha256",
-           "load_dump", "load_nuscenes", "save_dump", "save_nuscenes", "unbounded_none"]
+__all__ = ["ParquetDataset", "ParquetWriter", "atomic_write", "calibrate_results_document",
+           "ellipses_json", "file_sha256", "load_dump", "load_nuscenes", "load_parquet",
+           "open_parquet", "save_dump", "save_nuscenes", "save_parquet", "unbounded_none"]
