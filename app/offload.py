@@ -17,6 +17,7 @@ replaced for the next one.
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 import multiprocessing
 import threading
@@ -42,6 +43,10 @@ def _worker_init(settings: Settings) -> None:
     store = Store(settings.sqlalchemy_url, settings.dumps_dir)
     _ENGINE = CalibrateEngine(ProfileCache(store), settings.default_profile,
                               settings.max_detections)
+    # Everything imported so far lives as long as the process: out of the collector's sight,
+    # a full collection (triggered by a request's many short-lived objects) costs ~1 ms, not
+    # the ~80 ms of walking every module object.
+    gc.freeze()
 
 
 def _worker_run(call: CalibrateCall) -> CallOutcome:
