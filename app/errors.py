@@ -5,8 +5,12 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 from fastapi import FastAPI, Request
+from fastapi.exception_handlers import http_exception_handler
 from fastapi.exceptions import RequestValidationError
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import compile_path
+from starlette.types import Scope
 
 from app.store import NotFoundError
 
@@ -52,3 +56,27 @@ def install_handlers(app: FastAPI) -> None:
 
     for kind in (RequestValidationError, RequestError, NotFoundError):
         app.add_exception_handler(kind, _handle)
+
+    async def _http(request: Request, exc: Exception) -> Response:
+        response = await http_exception_handler(request, exc)  # type: ignore[arg-type]
+        if response.status_code == 405:   # every method of the path, not one route's
+            response.headers["Allow"] = ", ".join(allowed_methods(request.app, request.scope))
+        return response
+
+    app.add_exception_handler(StarletteHTTPException, _http)
+
+
+def allowed_methods(app: FastAPI, scope: Scope) -> list[str]:
+    """The methods some route serves at the request's path (FastAPI keeps one route per
+    method, and Starlette's 405 names only the first route's)."""
+    try:
+        from fastapi.routing import iter_route_contexts  # FastAPI >= 0.137: a route tree
+        routes = [(c.path, c.methods) for c in iter_route_contexts(app.router.routes)]
+    except ImportError:
+        routes = [(getattr(r, "path", ""), getattr(r, "methods", None)) for r in app.routes]
+    path = scope.get("path", "")
+    methods: set[str] = set()
+    for template, route_methods in routes:
+        if route_methods and compile_path(template)[0].match(path):
+            methods |= set(route_methods)
+    return sorted(methods)

@@ -36,7 +36,7 @@ from calibrators.covariance import layer_spread
 from calibrators.depth import add_depth_term
 from calibrators.ellipse import Ellipse, ellipse, radius_ellipse
 from calibrators.exceptions import FieldError
-from calibrators.levels import check_levels, gaussian_radius
+from calibrators.levels import MAX_LEVELS, check_levels, gaussian_radius
 from calibrators.modulation import modulate_logits
 from calibrators.scores import class_probabilities, label_logit, predict, probability_logit
 
@@ -279,7 +279,10 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
     if conformal is None:
         return ({float(q): ellipse(block, q) for q in levels},
                 {float(q): np.full(n, gaussian_radius(q)) for q in levels}, method, None)
-    radii = conformal.radii(levels, labels, distances)
+    # `levels` is the ellipse confidence plus up to MAX_LEVELS requested levels: radii() takes
+    # at most MAX_LEVELS at once
+    radii = np.concatenate([conformal.radii(levels[i:i + MAX_LEVELS], labels, distances)
+                            for i in range(0, len(levels), MAX_LEVELS)], axis=1)
     index = conformal.group_index(labels, distances)
     names = {int(g): _group_name(profile, conformal, conformal.groups_[g])
              for g in np.unique(index)}

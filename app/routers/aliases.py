@@ -45,13 +45,15 @@ def set_alias(name: ProfileName, alias: AliasPath,
 
 
 @router.delete("/{name}/aliases/{alias}", responses={**ADMIN_ERRORS,
+                                                     409: {"model": ErrorResponse},
                                                      422: {"model": ErrorResponse}})
 def delete_alias(name: ProfileName, alias: AliasPath, store: StoreDep, token: AdminIdDep
                  ) -> AliasOut:
     """Remove an alias (not `champion`: activate another version instead); the removed one."""
     if alias == CHAMPION:
         raise RequestError(["path", "alias"], "champion is the active version and cannot be "
-                                              "deleted; activate another version instead")
+                                              "deleted; activate another version instead",
+                           status=409)
     previous = next((a.version for a in store.aliases(name) if a.alias == alias), None)
     audit = AuditEntry("alias.delete", f"{name}@{alias}", token, {"previous": previous})
     return _out(store.delete_alias(name, alias, audit))

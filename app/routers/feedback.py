@@ -6,6 +6,7 @@ from typing import Any
 
 from fastapi import APIRouter, Request, status
 from fastapi.responses import Response
+from pydantic import TypeAdapter
 from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
@@ -16,7 +17,7 @@ from app.deps import CacheDep, FeedbackIdDep, RunnerDep, SettingsDep, StoreDep
 from app.errors import RequestError
 from app.feedback import frames_dump, record_feedback
 from app.refit import keep_feedback, queue_refit
-from app.schemas.common import ErrorResponse
+from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.feedback import FeedbackRequest, FeedbackResult
 from app.settings import Settings
 from app.store import AuditEntry, Store
@@ -29,7 +30,7 @@ register_body_model(FeedbackRequest)
 _FORM = {"type": "object", "required": ["dump"], "properties": {
     "dump": {"type": "string", "format": "binary",
              "description": "Validation dump v1 (NPZ) of frames the version calibrated."},
-    "profile": {"type": "string", "minLength": 1, "maxLength": 140,
+    "profile": {**TypeAdapter(ProfileRefText).json_schema(),
                 "description": "`name`, `name@version` or `name@alias` (default: the "
                                "configured default name)."}}}
 BODY = {"requestBody": {"required": True, "content": {

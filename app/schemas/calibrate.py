@@ -4,7 +4,15 @@ from __future__ import annotations
 
 from typing import Annotated, Literal, Self
 
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    ConfigDict,
+    Field,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
 
 from app.schemas.common import Finite, Probability, ProfileRef
 from calibrators.levels import MAX_LEVELS
@@ -53,7 +61,11 @@ def _covariance(v: list[list[float]]) -> list[list[float]]:
 
 #: A `[D, D]` covariance, checked square here; symmetry and positive semi-definiteness are
 #: checked by the library against the profile (`calibrators.checks.check_covariances`).
-Covariance = Annotated[list[Row], AfterValidator(_covariance)]
+Covariance = Annotated[list[Row], AfterValidator(_covariance), WithJsonSchema({
+    "description": "A square [D, D] matrix, D in 1..9.",
+    "anyOf": [{"type": "array", "minItems": d, "maxItems": d, "items": {
+        "type": "array", "minItems": d, "maxItems": d, "items": {"type": "number"}}}
+        for d in range(1, len(BOX_FIELDS) + 1)]})]
 
 
 class DetectionIn(BaseModel):

@@ -80,7 +80,7 @@ def test_a_fit_is_audited_once_with_its_job(client, npz_bytes, wait):
     ("put", f"{AL}/x", {"version": "1"}, ["body", "version"]),
     ("put", f"{AL}/x", {}, ["body", "version"]),
     ("put", f"{AL}/x", {"version": 1, "extra": 1}, ["body", "extra"]),
-    ("delete", f"{AL}/champion", None, ["path", "alias"]),
+    ("delete", f"{AL}/9abc", None, ["path", "alias"]),
     ("get", "/v1/audit?limit=0", None, ["query", "limit"]),
     ("get", "/v1/audit?action=nope", None, ["query", "action"]),
 ])
@@ -89,6 +89,12 @@ def test_bad_alias_and_audit_requests_name_the_field(client, method, path, body,
     r = getattr(client, method)(path, **kwargs)
     assert r.status_code == 422, r.text
     assert loc in [e["loc"] for e in r.json()["detail"]]
+
+
+def test_the_champion_alias_cannot_be_deleted_409(client):
+    r = client.delete(f"{AL}/champion", headers=ADMIN)
+    assert r.status_code == 409, r.text
+    assert r.json()["detail"][0]["loc"] == ["path", "alias"] and "activate" in r.text
 
 
 def test_unknown_versions_names_and_aliases_are_404(client):

@@ -247,3 +247,10 @@ def test_too_many_detections_is_a_413_naming_the_limit(seeded, detection, dump_g
         ok = client.post("/v1/calibrate",
                          json={"frames": [{"frame_id": "f", "detections": three}]})
         assert ok.status_code == 200, ok.text
+
+
+def test_a_405_allows_every_method_of_the_path(client):
+    r = client.options("/v1/profiles/lidar/aliases/x")
+    assert r.status_code == 405 and r.headers["allow"] == "DELETE, PUT"
+    r = client.get("/v1/calibrate")
+    assert r.status_code == 405 and r.headers["allow"] == "POST"

@@ -249,3 +249,17 @@ def test_no_detections_calibrate_to_empty_arrays():
                             covariances=np.zeros((0, 2, 2)), levels=[0.5, 0.9])
     assert len(res) == 0 and res.covariances.shape == (0, 2, 2)
     assert res.regions[0.9].semi_major.shape == (0,)
+
+
+def test_twenty_levels_and_another_ellipse_confidence_are_served():
+    from calibrators.fit import fit_profile
+    from calibrators.synthetic import synthetic_dump
+
+    dump = synthetic_dump(n_frames=20, seed=1)
+    profile = fit_profile(dump, cov_source="given", region_method="conformal", min_group=30)
+    levels = [round(0.04 * k, 2) for k in range(1, 21)]              # 20 levels, not 0.95
+    res = profile.calibrate(logits=dump.det_logits[:5, -1], boxes=dump.det_boxes[:5, -1],
+                            covariances=dump.det_cov[:5], levels=levels,
+                            ellipse_confidence=0.95)
+    assert list(res.regions) == levels and res.ellipses is not None
+    assert (res.ellipses.semi_major >= res.regions[0.8].semi_major).all()
