@@ -14,7 +14,7 @@ from pydantic import (
     model_validator,
 )
 
-from app.schemas.common import Finite, Probability, ProfileRef
+from app.schemas.common import Finite, Probability, ProfileRef, ProfileRefText
 from calibrators.levels import MAX_LEVELS
 from calibrators.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
 
@@ -140,9 +140,9 @@ class CalibrateRequest(BaseModel):
         "profile": "lidar", "ellipse_confidence": 0.95, "levels": [0.5, 0.9, 0.95, 0.99],
         "frames": [{"frame_id": "f0", "detections": [_EXAMPLE_DETECTION]}]}]})
 
-    profile: str | None = Field(
-        None, description="`name` (its active version) or `name@version`; default: the "
-                          "configured default name.", examples=["lidar"])
+    profile: ProfileRefText | None = Field(
+        None, description="`name` (its active version), `name@version` or `name@alias`; "
+                          "default: the configured default name.")
     ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
     levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT,
                                 json_schema_extra=LEVELS_SCHEMA)
@@ -223,7 +223,9 @@ class DetectRequest(BaseModel):
     points: list[Row] | None = Field(
         None, min_length=1, description="Points `[P, F]` in the sensor's feature order "
                                         "instead of a simulated frame.")
-    profile: str | None = None
+    profile: ProfileRefText | None = Field(
+        None, description="`name`, `name@version` or `name@alias`; default: the configured "
+                          "default name.")
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Keep raw scores >= this.")
     ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
     levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT,

@@ -103,3 +103,19 @@ def test_modulation_needs_layer_logits_at_upload(empty_client, dump_given, tmp_p
     assert r.status_code == 422
     assert r.json()["detail"][0]["loc"] == ["body", "modulation"]
     assert empty_client.get("/v1/jobs").json() == []
+
+
+def test_the_openapi_example_of_fit_is_accepted(client, wait):
+    """The multipart example the schema publishes (text parts) gets a 202; its one-box fit
+    then fails with the reason, and the active profile stays."""
+    content = client.get("/openapi.json").json()["paths"]["/v1/fit"]["post"]["requestBody"][
+        "content"]["multipart/form-data"]
+    (example,) = [e["value"] for e in content["examples"].values()]
+    files = {k: (f"{k}.json", v) for k, v in example.items() if k in ("results", "gt")}
+    data = {k: v for k, v in example.items() if k not in files}
+    r = client.post("/v1/fit", headers=ADMIN, files=files, data=data)
+    assert r.status_code == 202, r.text
+    job = wait(client, r.json()["job_id"])
+    assert job["state"] in ("succeeded", "failed") and (job["state"] == "succeeded"
+                                                        or job["error"])
+    assert client.get("/v1/profiles/lidar").json()["active_version"] == 1
