@@ -68,10 +68,24 @@ Covariance = Annotated[list[Row], AfterValidator(_covariance), WithJsonSchema({
         for d in range(1, len(BOX_FIELDS) + 1)]})]
 
 
+def _given(*fields: str, kind: str = "array") -> dict[str, object]:
+    """The schema of an object whose `fields` are present and not null."""
+    return {"required": list(fields),
+            "properties": {f: {"type": "number" if f == "score" else kind} for f in fields}}
+
+
+#: What `DetectionIn` checks, in the schema: exactly one form of class evidence, and a box.
+_EVIDENCE = [_given("logits"), _given("layer_logits"), _given("scores"),
+             {"required": ["score", "label"], "properties": {
+                 "score": {"type": "number"}, "label": {"type": ["string", "integer"]}}}]
+_BOXES = [_given("box"), _given("layer_boxes")]
+
+
 class DetectionIn(BaseModel):
     """One raw detection: class evidence (exactly one form), a box, optional uncertainty."""
 
-    model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [_EXAMPLE_DETECTION]})
+    model_config = ConfigDict(extra="forbid", json_schema_extra={
+        "examples": [_EXAMPLE_DETECTION], "allOf": [{"oneOf": _EVIDENCE}, {"anyOf": _BOXES}]})
 
     id: str | int | None = Field(None, description="Echoed back unchanged.")
     logits: Row | None = Field(None, min_length=1, description="Final-layer logits `[C']`.")
@@ -84,8 +98,9 @@ class DetectionIn(BaseModel):
         None, description="Class name or index; required with `score`.")
     box: Row | None = Field(None, description=f"`{_BOX_TEXT}` ({_BOX_WIDTHS[1]} values: no "
                                               "velocity).")
-    layer_boxes: list[Row] | None = Field(
-        None, description=f"Box of every decoder layer `[L, {len(BOX_FIELDS)}]`.")
+    layer_boxes: list[Annotated[Row, Field(min_length=len(BOX_FIELDS),
+                                           max_length=len(BOX_FIELDS))]] | None = Field(
+        None, min_length=1, description=f"Box of every decoder layer `[L, {len(BOX_FIELDS)}]`.")
     covariance: Covariance | None = Field(
         None, description="Box covariance `[D, D]` over the profile's `cov_dims`.")
 
