@@ -7,16 +7,15 @@ row of `profile_aliases`. Moves serialize per profile name like activations.
 
 from __future__ import annotations
 
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
 
 from sqlalchemy import select
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from app.store.audit import AuditEntry
 from app.store.models import ActiveRow, AliasRow, ProfileRow, utcnow
+from app.store.parts import StorePart
 from app.store.records import NotFoundError, ProfileRecord, aware
 
 #: The alias that is the active pointer.
@@ -33,19 +32,8 @@ class AliasRecord:
     updated_at: datetime
 
 
-class AliasStore:
+class AliasStore(StorePart):
     """Set, move, delete and read aliases (`Store` provides sessions, locks and activation)."""
-
-    _session: sessionmaker[Session]
-
-    def _tx(self) -> AbstractContextManager[Session]:
-        raise NotImplementedError
-
-    def _serialize(self, conn: Any, scope: str, name: str) -> None:
-        raise NotImplementedError
-
-    def _audit(self, s: Session, entry: AuditEntry | None) -> None:
-        raise NotImplementedError
 
     def activate(self, name: str, version: int, audit: AuditEntry | None = None
                  ) -> ProfileRecord:

@@ -10,16 +10,15 @@ never interleave their sums.
 from __future__ import annotations
 
 from collections.abc import Callable
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from datetime import datetime
-from typing import Any
 
 from sqlalchemy import func, select
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
 from app.store.audit import AuditEntry
 from app.store.models import ActiveRow, HealthRow, ProfileRow, utcnow
+from app.store.parts import StorePart
 from app.store.records import aware
 
 
@@ -53,19 +52,8 @@ class HealthOverview:
     latest: HealthRecord
 
 
-class HealthStore:
+class HealthStore(StorePart):
     """Append and read feedback health (`Store` provides sessions, locks and the audit)."""
-
-    _session: sessionmaker[Session]
-
-    def _tx(self) -> AbstractContextManager[Session]:
-        raise NotImplementedError
-
-    def _serialize(self, conn: Any, scope: str, name: str) -> None:
-        raise NotImplementedError
-
-    def _audit(self, s: Session, entry: AuditEntry | None) -> None:
-        raise NotImplementedError
 
     def append_health(self, name: str, profile_id: int,
                       advance: Callable[[HealthRecord | None], list[HealthChunk]],
