@@ -116,6 +116,8 @@ class CalibrateEngine:
                                  levels=levels)
         except FieldError as exc:
             raise _batch_error(exc, loaded.record.ref) from None
+        except ValueError as exc:   # a library check that names no field
+            raise RequestError(["body"], f"profile {loaded.record.ref}: {exc}") from None
         meta = {"profile": loaded.ref(), "classes": list(prof.classes),
                 "cov_dims": list(prof.cov_dims)}
         out = calibrated_batch(request, res, prof.classes, _confidence(call), meta)

@@ -143,6 +143,9 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
             res = prof.calibrate(**kwargs, levels=levels)  # type: ignore[arg-type]
         except FieldError as exc:
             raise _located(exc, key, g, where, locate, loaded.record.ref) from None
+        except ValueError as exc:   # a library check that names no field: the group's first
+            fi, di = where[g.index[0]]
+            raise _mismatch(locate(fi, di), f"profile {loaded.record.ref}: {exc}") from None
         _rows(res, prof.classes, g, confidence, flat, rows)
     out: list[list[dict[str, object]]] = [[] for _ in frames]
     for i, row in enumerate(rows):

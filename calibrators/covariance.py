@@ -14,6 +14,7 @@ from collections.abc import Sequence
 import numpy as np
 
 from calibrators.checks import as_float_array
+from calibrators.exceptions import FieldError
 from calibrators.vocab import BOX_FIELDS, BOX_INDEX, check_dims, wrap_angle
 
 
@@ -26,11 +27,12 @@ def layer_spread(layer_boxes: np.ndarray, dims: Sequence[str] = ("x", "y")) -> n
     idx = dim_indices(dims)
     boxes = as_float_array("layer_boxes", layer_boxes, ndim=3)
     if boxes.shape[2] != len(BOX_FIELDS):
-        raise ValueError(f"layer_boxes must have shape [N, L, 9], got {boxes.shape}")
+        raise FieldError("layer_boxes", f"layer_boxes must have shape [N, L, 9], got "
+                                        f"{boxes.shape}")
     n_layers = boxes.shape[1]
     if n_layers < 2:
-        raise ValueError(f"layer_boxes has {n_layers} decoder layer(s); the spread across "
-                         "layers needs L >= 2")
+        raise FieldError("layer_boxes", f"layer_boxes has {n_layers} decoder layer(s); the "
+                                        "spread across layers needs L >= 2")
     values = boxes[:, :, idx]
     for j, name in enumerate(dims):
         if name == "yaw":

@@ -254,3 +254,15 @@ def test_a_405_allows_every_method_of_the_path(client):
     assert r.status_code == 405 and r.headers["allow"] == "DELETE, PUT"
     r = client.get("/v1/calibrate")
     assert r.status_code == 405 and r.headers["allow"] == "POST"
+
+
+def test_one_decoder_layer_of_boxes_is_a_422_not_a_500(client):
+    """Found by schemathesis: `layer_boxes` with L = 1 cannot give a spread across layers."""
+    det = {"score": 0.0, "label": 1, "layer_boxes": [[0.0] * 9]}
+    for profile in ("lidar", "layers"):
+        r = client.post("/v1/calibrate", json={"profile": profile, "frames": [
+            {"frame_id": "f", "detections": [det]}]})
+        assert r.status_code == 422, r.text
+        loc = r.json()["detail"][0]["loc"]   # the field the profile's source needs
+        assert loc[:5] == ["body", "frames", 0, "detections", 0], loc
+        assert loc[5] in ("layer_boxes", "covariance"), loc
