@@ -25,8 +25,8 @@ import sys
 import time
 from pathlib import Path
 
+from calibrators.dump import concat_frames
 from calibrators.io import ParquetWriter
-from calibrators.io.parquet import concat_frames
 from calibrators.synthetic import CLASSES10, DEFAULT_DEPTH_K, synthetic_dump
 
 T_TRUE = 2.0

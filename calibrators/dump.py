@@ -240,3 +240,23 @@ class Dump:
                        det_boxes=self.det_boxes[keep], det_cov=take(self.det_cov),
                        det_hyp_boxes=take(self.det_hyp_boxes),
                        det_hyp_scores=take(self.det_hyp_scores))
+
+
+def concat_frames(dumps: list[Dump]) -> Dump:
+    """One `Dump` of the frames of `dumps` in order (same classes, mode, layers and optional
+    arrays): frame i of the second follows the last frame of the first, and so on."""
+    offsets = np.cumsum([0] + [d.n_frames for d in dumps[:-1]])
+    first = dumps[0]
+
+    def cat(name: str) -> np.ndarray | None:
+        values = [getattr(d, name) for d in dumps]
+        return None if values[0] is None else np.concatenate(values)
+
+    return Dump(
+        classes=first.classes, score_mode=first.score_mode, frame_ids=cat("frame_ids"),
+        ego_translation=cat("ego_translation"), cov_dims=first.cov_dims,
+        det_frame=np.concatenate([d.det_frame + o for d, o in zip(dumps, offsets, strict=True)]),
+        det_logits=cat("det_logits"), det_boxes=cat("det_boxes"), det_cov=cat("det_cov"),
+        det_hyp_boxes=cat("det_hyp_boxes"), det_hyp_scores=cat("det_hyp_scores"),
+        gt_frame=np.concatenate([d.gt_frame + o for d, o in zip(dumps, offsets, strict=True)]),
+        gt_labels=cat("gt_labels"), gt_boxes=cat("gt_boxes"))

@@ -38,10 +38,11 @@ import numpy as np
 
 from calibrators.depth import DepthScaler
 from calibrators.distributed import Mapper
+from calibrators.dump import concat_frames
 from calibrators.fit import base_profile, check_fit_input, selection_of, source_stage, versioned
 from calibrators.fit_regions import CovarianceFit, covariance_fit, fit_region_stage
 from calibrators.fit_scores import ScoreFit
-from calibrators.io.parquet import ParquetDataset, concat_frames, open_parquet
+from calibrators.io.parquet import ParquetDataset, open_parquet
 from calibrators.matched import held_out_frames, resolve_cov_source
 from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibrationProfile, make_provenance

@@ -11,9 +11,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
+from calibrators.dump import concat_frames
 from calibrators.exceptions import FieldError
 from calibrators.io import ParquetWriter, load_parquet, open_parquet, save_parquet
-from calibrators.io.parquet import concat_frames
 from calibrators.synthetic import synthetic_dump
 
 ARRAYS = ("frame_ids", "det_frame", "det_logits", "det_boxes", "det_cov", "gt_frame",
