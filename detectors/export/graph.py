@@ -17,7 +17,8 @@ level), angle [N], and for conformal regions region_group [N] int64 (the group s
 detection, described in the graph's metadata).
 
 A stage the graph cannot express, a covariance source the profile does not serve, or a
-conformal level some group cannot serve raises `ExportError` naming it; nothing is dropped.
+nothing is dropped. A conformal level some group cannot bound is served as the library serves
+it: an infinite radius and infinite semi-axes (the whole plane).
 Input checks the library makes per request (NaN, shapes, L >= 2 for the layer spread) are the
 caller's: the graph computes what the numbers give.
 """
@@ -271,15 +272,6 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, levels: list[float
                                   else float(edges[g.bins[1] + 1])], "n": g.n}
               for g in conformal.groups_]
     serving = conformal.serving_[:len(profile.classes)]     # labels are the profile's classes
-    used = np.unique(serving)
-    bad = [(int(g), j) for g in used for j in range(len(levels)) if not np.isfinite(table[g, j])]
-    if bad:
-        g, j = bad[0]
-        group = conformal.groups_[g]
-        lo, hi = edges[group.bins[0]], edges[group.bins[1] + 1]
-        raise ExportError(f"level {levels[j]} needs more calibration points than conformal "
-                          f"group {g} ({groups[g]['class'] or 'pooled classes'} {lo:g}-{hi:g} "
-                          f"m: {group.n}) has; the largest level it serves is "
-                          f"{group.n / (group.n + 1):.4g} (--levels)")
+    # a level a group cannot bound has an infinite radius: the whole plane, as the library
     return ConformalRadii(torch.as_tensor(edges[1:-1]), torch.as_tensor(serving),
-                          torch.as_tensor(np.where(np.isfinite(table), table, 0.0))), groups
+                          torch.as_tensor(table)), groups

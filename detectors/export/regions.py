@@ -144,5 +144,6 @@ class ConformalRadii(nn.Module):
         bins = (distances.unsqueeze(1) >= self.inner_edges.unsqueeze(0)).to(torch.int64)
         group = self.serving[labels, bins.sum(dim=1)]
         radii = self.table[group]
-        return (radii, radii * torch.sqrt(high).unsqueeze(1),
-                radii * torch.sqrt(low).unsqueeze(1), group)
+        unbounded = torch.isinf(radii)   # inf·0 would be nan: an unbounded region is inf
+        return (radii, torch.where(unbounded, radii, radii * torch.sqrt(high).unsqueeze(1)),
+                torch.where(unbounded, radii, radii * torch.sqrt(low).unsqueeze(1)), group)

@@ -41,11 +41,29 @@ def test_modulation_needs_layer_logits(modulated):
     assert build_graph(modulated).input_names[0] == "layer_logits"
 
 
-def test_a_level_a_conformal_group_cannot_serve(conformal, tmp_path):
-    with pytest.raises(ExportError, match=r"level 0\.9999 needs more calibration points than "
-                                          r"conformal group \d+ .*largest level it serves"):
-        export_profile(conformal, tmp_path / "g.onnx", levels=(0.5, 0.9999))
-    assert not list(tmp_path.iterdir())
+def test_a_level_a_conformal_group_cannot_bound_is_unbounded_as_in_the_library(
+        conformal, tmp_path):
+    import numpy as np
+    import onnxruntime as ort
+
+    dump = synthetic_dump(n_frames=4, seed=5)
+    n = min(40, dump.n_detections)
+    values = {"logits": dump.det_logits[:n, -1], "boxes": dump.det_boxes[:n, -1],
+              "ego_xy": np.zeros((n, 2)), "covariances_raw": dump.det_cov[:n]}
+    lib = conformal.calibrate(logits=values["logits"], boxes=values["boxes"],
+                              ego_xy=values["ego_xy"], covariances=values["covariances_raw"],
+                              levels=[0.5, 0.9999])
+    assert np.isinf(lib.regions[0.9999].semi_major).all()
+    export_profile(conformal, tmp_path / "g.onnx", levels=(0.5, 0.9999))
+    session = ort.InferenceSession(str(tmp_path / "g.onnx"),
+                                   providers=["CPUExecutionProvider"])
+    names = [i.name for i in session.get_inputs()]
+    out = dict(zip([o.name for o in session.get_outputs()],
+                   session.run(None, {k: values[k] for k in names}), strict=True))
+    np.testing.assert_array_equal(out["semi_major"][:, 1], lib.regions[0.9999].semi_major)
+    np.testing.assert_array_equal(out["semi_minor"][:, 1], lib.regions[0.9999].semi_minor)
+    np.testing.assert_allclose(out["semi_major"][:, 0], lib.regions[0.5].semi_major,
+                               rtol=1e-9, atol=0)
 
 
 @pytest.mark.parametrize("levels, text", [((1.5,), r"levels\[0\] = 1.5"), ((), "non-empty"),
