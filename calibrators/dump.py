@@ -40,6 +40,7 @@ from calibrators.checks import (
     check_length,
 )
 from calibrators.exceptions import FieldError
+from calibrators.hypotheses import check_hypotheses
 from calibrators.scores import predict
 from calibrators.vocab import BOX_FIELDS, SCORE_MODES
 
@@ -137,18 +138,7 @@ class Dump:
             given = "det_hyp_scores" if boxes is None else "det_hyp_boxes"
             raise FieldError(missing, f"{given} is given without {missing}; the hypothesis "
                                       "arrays come together")
-        boxes = as_float_array("det_hyp_boxes", boxes, ndim=3)
-        if boxes.shape[0] != n or boxes.shape[2:] != (9,) or boxes.shape[1] < 1:
-            raise FieldError("det_hyp_boxes", f"det_hyp_boxes must have shape [{n}, H, 9] "
-                                              f"with H >= 1, got {boxes.shape}")
-        scores = as_float_array("det_hyp_scores", scores, ndim=2)
-        if scores.shape != boxes.shape[:2]:
-            raise FieldError("det_hyp_scores", f"det_hyp_scores must have shape "
-                                               f"[{n}, {boxes.shape[1]}], got {scores.shape}")
-        if (scores < 0).any():
-            row = int(np.argwhere(scores < 0)[0][0])
-            raise FieldError("det_hyp_scores", f"det_hyp_scores has a negative group score "
-                                               f"at row {row}", row=row)
+        boxes, scores = check_hypotheses(boxes, scores, n, ("det_hyp_boxes", "det_hyp_scores"))
         object.__setattr__(self, "det_hyp_boxes", boxes)
         object.__setattr__(self, "det_hyp_scores", scores)
 

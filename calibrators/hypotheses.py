@@ -29,6 +29,29 @@ from calibrators.exceptions import FieldError
 from calibrators.vocab import BOX_FIELDS, BOX_INDEX, check_dims, wrap_angle
 
 
+def check_hypotheses(hyp_boxes: object, hyp_scores: object, n: int | None = None,
+                     names: tuple[str, str] = ("hyp_boxes", "hyp_scores")
+                     ) -> tuple[np.ndarray, np.ndarray]:
+    """`hyp_boxes [N, H, 9]` and `hyp_scores [N, H]` as float64 (N = `n` when given, H >= 1,
+    finite, scores >= 0), or a FieldError naming the array (`names`) and the row at fault."""
+    box_name, score_name = names
+    boxes = as_float_array(box_name, hyp_boxes, ndim=3)
+    if ((n is not None and boxes.shape[0] != n) or boxes.shape[2] != len(BOX_FIELDS)
+            or boxes.shape[1] < 1):
+        raise FieldError(box_name, f"{box_name} must have shape [{'N' if n is None else n}, H, "
+                                   f"9] with H >= 1, got {list(boxes.shape)}")
+    scores = as_float_array(score_name, hyp_scores, ndim=2)
+    if scores.shape != boxes.shape[:2]:
+        raise FieldError(score_name, f"{score_name} must have shape {list(boxes.shape[:2])}, "
+                                     f"got {list(scores.shape)}")
+    if (scores < 0).any():
+        row = int(np.argwhere(scores < 0)[0][0])
+        raise FieldError(score_name, f"{score_name} has a negative score at row {row} (group "
+                                     f"scores are sums of probabilities: a negative group "
+                                     f"score is not one)", row=row)
+    return boxes, scores
+
+
 def hypotheses_covariance(hyp_boxes: np.ndarray, hyp_scores: np.ndarray,
                           dims: Sequence[str] = ("x", "y")) -> np.ndarray:
     """Group-score-weighted covariance `[N, D, D]` of each detection's H box hypotheses.
@@ -38,18 +61,7 @@ def hypotheses_covariance(hyp_boxes: np.ndarray, hyp_scores: np.ndarray,
     the covariance's order. See the module docstring for the formula.
     """
     names = check_dims(dims)
-    boxes = as_float_array("hyp_boxes", hyp_boxes, ndim=3)
-    if boxes.shape[2] != len(BOX_FIELDS) or boxes.shape[1] < 1:
-        raise FieldError("hyp_boxes", f"hyp_boxes must have shape [N, H, 9] with H >= 1, "
-                                      f"got {boxes.shape}")
-    scores = as_float_array("hyp_scores", hyp_scores, ndim=2)
-    if scores.shape != boxes.shape[:2]:
-        raise FieldError("hyp_scores", f"hyp_scores must have shape {list(boxes.shape[:2])}, "
-                                       f"got {list(scores.shape)}")
-    if (scores < 0).any():
-        row = int(np.argwhere(scores < 0)[0][0])
-        raise FieldError("hyp_scores", f"hyp_scores has a negative score at row {row}",
-                         row=row)
+    boxes, scores = check_hypotheses(hyp_boxes, hyp_scores)
     weights = _weights(scores)
     values = boxes[:, :, [BOX_INDEX[d] for d in names]]
     top = scores.argmax(axis=1)

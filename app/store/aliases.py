@@ -14,8 +14,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.store.audit import AuditEntry
-from app.store.models import ActiveRow, AliasRow, ProfileRow, utcnow
-from app.store.parts import StorePart
+from app.store.models import ActiveRow, AliasRow, utcnow
+from app.store.parts import StorePart, version_row
 from app.store.records import NotFoundError, ProfileRecord, aware
 
 #: The alias that is the active pointer.
@@ -48,10 +48,7 @@ class AliasStore(StorePart):
             return AliasRecord(name, alias, record.version, utcnow())
         with self._tx() as s:
             self._serialize(s, "profile", name)
-            row = s.scalar(select(ProfileRow).where(ProfileRow.name == name,
-                                                    ProfileRow.version == version))
-            if row is None:
-                raise NotFoundError(f"profile {name!r} has no version {version}")
+            row = version_row(s, name, version)
             record = self._point_alias(s, name, alias, row.id, version)
             self._audit(s, audit)
         return record

@@ -5,9 +5,21 @@ from __future__ import annotations
 from contextlib import AbstractContextManager
 from typing import Any
 
+from sqlalchemy import select
 from sqlalchemy.orm import Session, sessionmaker
 
 from app.store.audit import AuditEntry
+from app.store.models import ProfileRow
+from app.store.records import NotFoundError
+
+
+def version_row(s: Session, name: str, version: int) -> ProfileRow:
+    """The stored row of version `version` of `name`; NotFoundError if there is none."""
+    row = s.scalar(select(ProfileRow).where(ProfileRow.name == name,
+                                            ProfileRow.version == version))
+    if row is None:
+        raise NotFoundError(f"profile {name!r} has no version {version}")
+    return row
 
 
 class StorePart:

@@ -49,6 +49,7 @@ from app.store.models import (
     add_missing_columns,
     utcnow,
 )
+from app.store.parts import version_row
 from app.store.records import (
     NameSummary,
     NotFoundError,
@@ -233,10 +234,7 @@ class Store(AuditLog, AliasStore, DumpFiles, JobQueue, HealthStore):
         recording `audit` in the same transaction."""
         with self._tx() as s:
             self._serialize(s, "profile", name)
-            row = s.scalar(select(ProfileRow).where(ProfileRow.name == name,
-                                                    ProfileRow.version == version))
-            if row is None:
-                raise NotFoundError(f"profile {name!r} has no version {version}")
+            row = version_row(s, name, version)
             active = s.get(ActiveRow, name)
             if active is None:
                 s.add(ActiveRow(name=name, profile_id=row.id, version=version))
