@@ -24,8 +24,10 @@ import threading
 import time
 import uuid
 from datetime import timedelta
+from pathlib import Path
 from typing import Any
 
+from app.datasets import DATASET_KIND, referenced_dataset
 from app.store import JobLostError, JobRecord, Store
 from app.store.files import InstanceLock
 from calibrators.fit import fit_profile
@@ -90,9 +92,10 @@ class JobRunner:
     def __init__(self, store: Store, workers: int = 1, poll_s: float = 1.0,
                  heartbeat_s: float = 5.0, stale_after: timedelta = timedelta(seconds=30),
                  clean_every_s: float = 600.0, dump_grace: timedelta = timedelta(hours=1),
-                 max_dump_bytes: int | None = None) -> None:
+                 max_dump_bytes: int | None = None, datasets_dir: Path | None = None) -> None:
         self.store, self.workers, self.poll_s = store, workers, poll_s
         self.max_dump_bytes = max_dump_bytes
+        self.datasets_dir = datasets_dir
         self.heartbeat_s, self.stale_after = heartbeat_s, stale_after
         self.clean_every_s, self.dump_grace = clean_every_s, dump_grace
         self.instance = f"{socket.gethostname()}:{os.getpid()}:{uuid.uuid4().hex[:12]}"
@@ -201,6 +204,21 @@ class JobRunner:
             except Exception:  # noqa: BLE001
                 log.exception("heartbeat failed")
 
+    def _fit(self, job: JobRecord, progress: _Progress) -> Any:
+        """The profile of `job`: its stored dump fit in memory, or its Parquet dataset (a
+        stored `app.datasets` reference) fit part by part."""
+        if self.store.dump_kind(job.dump_sha256) == DATASET_KIND:
+            from calibrators.fit_stream import fit_profile_stream
+
+            path = referenced_dataset(self.datasets_dir, self.store.dump_path(job.dump_sha256))
+            progress("fitting", 0.0)
+            return fit_profile_stream(path, FitOptions.from_dict(job.options),
+                                      progress=progress)
+        dump = load_job_dump(self.store, job, self.max_dump_bytes)
+        progress("fitting", 0.0)
+        return fit_profile(dump, FitOptions.from_dict(job.options),
+                           dump_sha256=job.dump_sha256, progress=progress)
+
     def run(self, job: JobRecord) -> None:
         """Fit one claimed job and record its outcome (never raises)."""
         progress = _Progress(self.store, job.id, self.instance)
@@ -208,10 +226,7 @@ class JobRunner:
             self._running[job.id] = progress
         started = time.monotonic()
         try:
-            dump = load_job_dump(self.store, job, self.max_dump_bytes)
-            progress("fitting", 0.0)
-            profile = fit_profile(dump, FitOptions.from_dict(job.options),
-                                  dump_sha256=job.dump_sha256, progress=progress)
+            profile = self._fit(job, progress)
             record = self.store.complete_job(job.id, profile.to_json(), self.instance)
             log.info("fit job %s: %s landed in %.1f s", job.id, record.ref,
                      time.monotonic() - started)

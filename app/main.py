@@ -73,7 +73,8 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         app.state.calibrator = CalibrateRunner(
             CalibrateEngine(cache, settings.default_profile, settings.max_detections), settings)
         runner = JobRunner(store, workers=settings.fit_workers,
-                           max_dump_bytes=settings.max_dump_bytes)
+                           max_dump_bytes=settings.max_dump_bytes,
+                           datasets_dir=settings.datasets_dir)
         app.state.store, app.state.cache, app.state.runner = store, cache, runner
         app.state.metrics.attach_store(store)
         runner.start()

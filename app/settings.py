@@ -39,6 +39,9 @@ class Settings(BaseSettings):
                                "are parsed and calibrated in a worker process.")
     dashboard_sensor: str = Field("lidar", description="Sensor of the dashboard's BEV frame.")
     dashboard_seed: int = Field(0, description="Simulated frame seed drawn on the dashboard.")
+    datasets_dir: Path | None = Field(None, description="Folder under which POST /v1/fit may "
+                                      "name a Parquet dataset (form field `dataset`); unset: "
+                                      "datasets are refused.")
     health_window_frames: int = Field(500, ge=1, description="Feedback frames in the rolling "
                                       "window of GET /v1/profiles/{name}/health.")
     health_chunk_frames: int = Field(25, ge=1, description="Feedback frames per stored health "

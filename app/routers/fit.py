@@ -2,18 +2,21 @@
 
 from __future__ import annotations
 
+import io
 import json
-from typing import Annotated
+from pathlib import Path
+from typing import Annotated, Any
 
 from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import JSONResponse
 
+from app.datasets import DATASET_KIND, dataset_reference, resolve_dataset
 from app.deps import AdminIdDep, RunnerDep, SettingsDep, StoreDep
 from app.errors import RequestError
 from app.schemas.common import ErrorResponse, ProfileName
 from app.schemas.fit import FitForm
 from app.schemas.profiles import FitAccepted
-from app.store import AuditEntry
+from app.store import AuditEntry, DumpRecord, Store
 from app.uploads import load_upload
 from calibrators.fit import check_fit_input
 from calibrators.options import FitOptions, OptionError
@@ -44,15 +47,20 @@ def fit(
     dump: Annotated[UploadFile, File(description="Validation dump v1 (NPZ).")] = None,
     results: Annotated[UploadFile, File(description="nuScenes results JSON.")] = None,
     gt: Annotated[UploadFile, File(description="Ground truth JSON for `results`.")] = None,
+    dataset: Annotated[str | None, Form(
+        max_length=1024, description="A Parquet dataset (`detcal convert`) to fit in place "
+                                     "and part by part: its path relative to "
+                                     "`DETCAL_DATASETS_DIR`.")] = None,
     name: Annotated[ProfileName | None, Form(description="Profile name (default: the "
                                                          "configured default).")] = None,
     activate: Annotated[bool, Form(description="Activate the new version when it lands (the "
                                                "first version of a name always is).")] = False,
 ) -> JSONResponse:
     """Store the uploaded dump (content-addressed) and queue a fit job; 202 with its id."""
-    if (dump is None) == (results is None) or (results is None) != (gt is None):
+    forms = (dump is not None) + (results is not None or gt is not None) + (dataset is not None)
+    if forms != 1 or (results is None) != (gt is None):
         raise RequestError(["body"], "upload either `dump` (NPZ) or both `results` and `gt` "
-                                     "(nuScenes JSON)")
+                                     "(nuScenes JSON), or name a `dataset`")
     from calibrators.io import load_dump, load_nuscenes
 
     profile_name = name or settings.default_profile
@@ -60,7 +68,10 @@ def fit(
         fit_options = FitOptions.from_dict(options.model_dump())
     except OptionError as exc:
         raise RequestError(["body", exc.field], str(exc)) from None
-    if dump is not None:
+    if dataset is not None:
+        stored, loaded = _dataset(store, settings.datasets_dir, dataset, fit_options)
+        gt_sha = None
+    elif dump is not None:
         stored = store.put_dump(dump.file, "npz")
         gt_sha = None
         loaded = load_upload(lambda: load_dump(store.dump_path(stored.sha256),
@@ -84,3 +95,20 @@ def fit(
                        dump_sha256=stored.sha256, name=profile_name)
     return JSONResponse(body.model_dump(), status_code=status.HTTP_202_ACCEPTED,
                         headers={"Location": body.status_url})
+
+
+def _dataset(store: Store, root: Path | None, name: str, options: FitOptions
+             ) -> tuple[DumpRecord, Any]:
+    """The stored reference of a dataset fit in place and its empty dump (for the option
+    checks): a 422 at `dataset` for a name outside `root` or a bad dataset, at the option
+    for one a streamed fit cannot reproduce."""
+    from calibrators.fit_stream import check_stream_options
+    from calibrators.io.parquet import open_parquet
+
+    path = resolve_dataset(root, name)
+    empty = load_upload(lambda: open_parquet(path).empty_dump(), "dataset")
+    try:
+        check_stream_options(options)
+    except OptionError as exc:
+        raise RequestError(["body", exc.field], str(exc)) from None
+    return store.put_dump(io.BytesIO(dataset_reference(name)), DATASET_KIND), empty

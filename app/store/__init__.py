@@ -5,6 +5,7 @@ from app.store.audit import AUDIT_ACTIONS, AuditEntry, AuditRecord
 from app.store.health import HealthChunk, HealthOverview, HealthRecord
 from app.store.records import (
     CleanReport,
+    DumpRecord,
     JobLostError,
     JobRecord,
     NameSummary,
@@ -14,5 +15,6 @@ from app.store.records import (
 from app.store.repository import Store
 
 __all__ = ["AUDIT_ACTIONS", "CHAMPION", "AliasRecord", "AuditEntry", "AuditRecord",
-           "CleanReport", "HealthChunk", "HealthOverview", "HealthRecord", "JobLostError",
-           "JobRecord", "NameSummary", "NotFoundError", "ProfileRecord", "Store"]
+           "CleanReport", "DumpRecord", "HealthChunk", "HealthOverview", "HealthRecord",
+           "JobLostError", "JobRecord", "NameSummary", "NotFoundError", "ProfileRecord",
+           "Store"]

@@ -81,6 +81,14 @@ class DumpFiles:
             raise
         return sha, size
 
+    def dump_kind(self, sha256: str) -> str:
+        """The kind a stored upload was recorded with (`npz`, `nuscenes-results`, ...)."""
+        with self._session() as s:
+            row = s.get(DumpRow, sha256)
+        if row is None:
+            raise NotFoundError(f"dump {sha256} is not stored")
+        return row.kind
+
     def dump_path(self, sha256: str) -> Path:
         """Path of the stored upload with this digest."""
         path = self.dumps_dir / sha256
