@@ -16,7 +16,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
 import sys
 import tempfile
 import threading
@@ -26,7 +25,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from bench.bench_service import ROOT, _payload, _port, _wait
+from bench.bench_service import _payload, _port, _wait, serve_detcal
 
 
 def _rss_mb(pid: int) -> float:
@@ -70,24 +69,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--clients", type=int, default=2, help="concurrent calibrate clients")
     args = ap.parse_args(argv)
 
-    from app.settings import Settings
-    from app.store import Store
-
     payload, profile_json = _payload(args.detections)
     body = json.dumps(payload, separators=(",", ":")).encode()
     with tempfile.TemporaryDirectory() as tmp:
-        settings = Settings(data_dir=Path(tmp) / "data")
-        store = Store(settings.sqlalchemy_url, settings.dumps_dir)
-        store.add_profile("lidar", profile_json)
-        store.close()
         port = _port()
-        env = {**os.environ, "DETCAL_ADMIN_TOKEN": "bench-health-token",
-               "DETCAL_MAX_REQUEST_BYTES": str(max(len(body) + 1024, 8 * 2**20))}
-        detcal = ROOT / ".venv" / "bin" / "detcal"
-        cmd = [str(detcal)] if detcal.exists() else [sys.executable, "-m", "app.cli"]
-        proc = subprocess.Popen([*cmd, "serve", "--port", str(port), "--data-dir",
-                                 str(settings.data_dir), "--log-level", "warning"],
-                                cwd=ROOT, env=env, stdout=subprocess.DEVNULL)
+        proc = serve_detcal(Path(tmp) / "data", profile_json, port, env={
+            "DETCAL_ADMIN_TOKEN": "bench-health-token",
+            "DETCAL_MAX_REQUEST_BYTES": str(max(len(body) + 1024, 8 * 2**20))})
         base = f"http://127.0.0.1:{port}"
         try:
             _wait(f"{base}/healthz", proc)

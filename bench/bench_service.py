@@ -47,6 +47,24 @@ def _wait(url: str, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
     raise RuntimeError(f"{url} did not come up")
 
 
+def serve_detcal(data_dir: Path, profile_json: str, port: int, *serve_args: str,
+                 env: dict[str, str] | None = None) -> subprocess.Popen:
+    """A `detcal serve` process on `port` over a new store in `data_dir` holding
+    `profile_json` as the active `lidar`; `serve_args` are extra `detcal serve` options."""
+    from app.settings import Settings
+    from app.store import Store
+
+    settings = Settings(data_dir=data_dir)
+    store = Store(settings.sqlalchemy_url, settings.dumps_dir)
+    store.add_profile("lidar", profile_json)
+    store.close()
+    detcal = ROOT / ".venv" / "bin" / "detcal"
+    cmd = [str(detcal)] if detcal.exists() else [sys.executable, "-m", "app.cli"]
+    return subprocess.Popen([*cmd, "serve", "--port", str(port), "--data-dir", str(data_dir),
+                             *serve_args, "--log-level", "warning"], cwd=ROOT,
+                            env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL)
+
+
 def _payload(n: int = 300) -> tuple[dict, str]:
     """A 300-detection frame from a synthetic dump, and the profile JSON fit on that dump."""
     from calibrators.fit import fit_profile
@@ -136,8 +154,6 @@ def main(argv: list[str] | None = None) -> int:
                     help="frames per request of the second JSON / Arrow comparison")
     args = ap.parse_args(argv)
 
-    from app.settings import Settings
-    from app.store import Store
     from calibrators.io.arrow_batch import ARROW_STREAM
 
     payload, profile_json = _payload()
@@ -148,18 +164,10 @@ def main(argv: list[str] | None = None) -> int:
     body_k, arrow_k = json.dumps(batched).encode(), _arrow(batched)
     procs = []
     with tempfile.TemporaryDirectory() as tmp:
-        settings = Settings(data_dir=Path(tmp) / "data")
-        store = Store(settings.sqlalchemy_url, settings.dumps_dir)
-        store.add_profile("lidar", profile_json)
-        store.close()
         p_app, p_echo = _port(), _port()
-        env = {**os.environ, "DETCAL_ADMIN_TOKEN": "bench"}
-        detcal = ROOT / ".venv" / "bin" / "detcal"
-        cmd = [str(detcal)] if detcal.exists() else [sys.executable, "-m", "app.cli"]
         try:
-            procs.append(subprocess.Popen(
-                [*cmd, "serve", "--port", str(p_app), "--data-dir", str(settings.data_dir),
-                 "--log-level", "warning"], cwd=ROOT, env=env, stdout=subprocess.DEVNULL))
+            procs.append(serve_detcal(Path(tmp) / "data", profile_json, p_app,
+                                      env={"DETCAL_ADMIN_TOKEN": "bench"}))
             procs.append(subprocess.Popen(
                 [sys.executable, "-m", "uvicorn", "bench._echo_app:app", "--port", str(p_echo),
                  "--log-level", "warning"], cwd=ROOT, stdout=subprocess.DEVNULL))

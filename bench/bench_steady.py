@@ -16,8 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import subprocess
 import sys
 import tempfile
 import threading
@@ -29,27 +27,15 @@ import httpx
 import numpy as np
 
 from bench.bench_health import _tree_rss_mb
-from bench.bench_service import ROOT, _payload, _port, _wait
+from bench.bench_service import _payload, _port, _wait, serve_detcal
 
 
 def _run(workers: int, rate: float, seconds: float, body: bytes, profile_json: str) -> dict:
     """One server with `workers` workers under the steady load; its figures."""
-    from app.settings import Settings
-    from app.store import Store
-
     with tempfile.TemporaryDirectory() as tmp:
-        settings = Settings(data_dir=Path(tmp) / "data")
-        store = Store(settings.sqlalchemy_url, settings.dumps_dir)
-        store.add_profile("lidar", profile_json)
-        store.close()
         port = _port()
-        detcal = ROOT / ".venv" / "bin" / "detcal"
-        cmd = [str(detcal)] if detcal.exists() else [sys.executable, "-m", "app.cli"]
-        proc = subprocess.Popen(
-            [*cmd, "serve", "--port", str(port), "--data-dir", str(settings.data_dir),
-             "--workers", str(workers), "--log-level", "warning"], cwd=ROOT,
-            env={**os.environ, "DETCAL_ADMIN_TOKEN": "bench-steady-token"},
-            stdout=subprocess.DEVNULL)
+        proc = serve_detcal(Path(tmp) / "data", profile_json, port, "--workers", str(workers),
+                            env={"DETCAL_ADMIN_TOKEN": "bench-steady-token"})
         url = f"http://127.0.0.1:{port}/v1/calibrate"
         headers = {"content-type": "application/json"}
         try:
