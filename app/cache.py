@@ -1,8 +1,10 @@
 """In-memory cache of parsed profiles; stored versions are immutable, so a version never goes stale.
 
-The active *pointer* (alias `champion`) and every other alias are read from the store on every
-lookup (one indexed read), so an activation or alias move by another worker process or a
-finished fit is seen by the next request.
+The active *pointer* (alias `champion`) and every other alias are read from the store, so an
+activation or alias move by another worker process or a finished fit is seen by the next
+request. Aliases are read on every lookup (one indexed read); active versions are kept until
+the store's commit marker moves (SQLite: any commit by anyone, `app.store.changes`), and read
+on every lookup where the store has no marker (Postgres).
 """
 
 from __future__ import annotations
@@ -36,6 +38,8 @@ class ProfileCache:
         self.store = store
         self._cache: dict[tuple[str, int], LoadedProfile] = {}
         self._lock = threading.Lock()
+        self._active: dict[str, int | None] = {}   # active versions read at `_marker`
+        self._marker: int | None = None
 
     def load_active(self) -> list[LoadedProfile]:
         """Parse and cache the active version of every name (at start-up)."""
@@ -61,10 +65,24 @@ class ProfileCache:
             return self._version(name, number)
         if alias is not None:
             return self._version(name, self.store.alias_version(name, alias))
-        version = self.store.active_version(name)
+        version = self._active_version(name)
         if version is None:
             raise NotFoundError(f"profile {name!r} does not exist")
         return self._version(name, version)
+
+    def _active_version(self, name: str) -> int | None:
+        """The store's active version of `name`, read again only after a commit."""
+        marker = self.store.commit_marker()   # read first: a commit after it is seen next time
+        with self._lock:
+            if marker is not None and marker == self._marker and name in self._active:
+                return self._active[name]
+        version = self.store.active_version(name)
+        if marker is not None:
+            with self._lock:
+                if marker != self._marker:
+                    self._active, self._marker = {}, marker
+                self._active[name] = version
+        return version
 
     def _version(self, name: str, version: int) -> LoadedProfile:
         key = (name, version)

@@ -11,6 +11,7 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
 
+from app.arrow_fast import ArrowCalibrateMiddleware
 from app.body import install_openapi
 from app.bundled_detectors import DetectorService
 from app.cache import ProfileCache
@@ -101,6 +102,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     for module in (health, metrics, calibrate, fit, jobs, aliases, profile_health, profiles,
                    feedback, audit, detect, dashboard):
         app.include_router(module.router)
+    app.add_middleware(ArrowCalibrateMiddleware)   # innermost: inside the limits and metrics
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes,
                        upload_bytes=settings.max_upload_bytes)
     app.add_middleware(AdminBeforeBodyMiddleware)

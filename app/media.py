@@ -6,15 +6,20 @@ from __future__ import annotations
 from fastapi import HTTPException, Request, status
 
 
-def _media(value: str) -> str:
+def media_type(value: str) -> str:
+    """The media type of a `Content-Type` or `Accept` entry, lower case, parameters dropped."""
     return value.split(";", 1)[0].strip().lower()
 
 
 def body_media(request: Request, *others: str) -> str:
     """`application/json` (also any `+json` type) or one of `others`; 415 naming the
     Content-Type otherwise."""
-    ctype = request.headers.get("content-type", "")
-    media = _media(ctype)
+    return content_media(request.headers.get("content-type", ""), *others)
+
+
+def content_media(ctype: str, *others: str) -> str:
+    """`body_media` of a `Content-Type` header value."""
+    media = media_type(ctype)
     if media == "application/json" or media.endswith("+json"):
         return "application/json"
     if media in others:
@@ -27,10 +32,14 @@ def body_media(request: Request, *others: str) -> str:
 def accept(request: Request, media: str) -> None:
     """Refuse (406) a request whose `Accept` header excludes `media`, the type its body's
     format is answered in (no header, `*/*` and `type/*` accept it)."""
-    header = request.headers.get("accept", "")
+    check_accept(request.headers.get("accept", ""), media)
+
+
+def check_accept(header: str, media: str) -> None:
+    """`accept` of an `Accept` header value."""
     if not header.strip():
         return
-    wanted = [_media(part) for part in header.split(",")]
+    wanted = [media_type(part) for part in header.split(",")]
     kind = media.split("/", 1)[0]
     if not any(w in (media, "*/*", f"{kind}/*") for w in wanted):
         raise HTTPException(status.HTTP_406_NOT_ACCEPTABLE,

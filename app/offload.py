@@ -29,6 +29,7 @@ from starlette.concurrency import run_in_threadpool
 from app.body import dumps_json
 from app.cache import ProfileCache
 from app.calibrate_calls import CalibrateCall, CalibrateEngine, CallOutcome
+from app.prometheus import ServiceMetrics
 from app.settings import Settings
 from app.store import Store
 
@@ -70,6 +71,13 @@ class CalibrateRunner:
         # an Arrow batch is read without copying: nothing there holds the GIL for long
         return (self.processes > 0 and call.kind != "arrow"
                 and len(call.body) > self.offload_bytes)
+
+    async def serve(self, call: CalibrateCall, metrics: ServiceMetrics) -> CallOutcome:
+        """`run(call)`, counting its calibrated detections per profile in `metrics`."""
+        out = await self.run(call)
+        if out.profile is not None:
+            metrics.detections.labels(out.profile).inc(out.detections)
+        return out
 
     async def run(self, call: CalibrateCall) -> CallOutcome:
         """The outcome of `call`, computed off the event loop."""

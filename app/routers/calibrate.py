@@ -20,6 +20,7 @@ from app.schemas.calibrate import (
     CalibrateRequest,
     CalibrateResponse,
 )
+from app.schemas.calibrate_query import CalibrateQuery
 from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.nuscenes import NuScenesResults
 from calibrators.io.arrow_batch import ARROW_STREAM
@@ -30,7 +31,7 @@ router = APIRouter(prefix="/v1", tags=["calibrate"],
                               503: {"model": ErrorResponse}})
 
 
-def _calibrator(request: Request) -> CalibrateRunner:
+async def _calibrator(request: Request) -> CalibrateRunner:
     return request.app.state.calibrator
 
 
@@ -39,17 +40,13 @@ CalibratorDep = Annotated[CalibrateRunner, Depends(_calibrator)]
 
 async def _serve(runner: CalibrateRunner, metrics: ServiceMetrics, call: CalibrateCall
                  ) -> Response:
-    out = await runner.run(call)
-    if out.profile is not None:
-        metrics.detections.labels(out.profile).inc(out.detections)
+    out = await runner.serve(call, metrics)
     return Response(out.content, status_code=out.status, media_type=out.media_type)
 
 
 _BINARY = {"schema": {"type": "string", "format": "binary"}}
 _CALIBRATE_BODY = body_doc(register_body_model(CalibrateRequest))
 _CALIBRATE_BODY["requestBody"]["content"][ARROW_STREAM] = _BINARY
-_QUERY_FOR_ARROW = ("For Arrow bodies; a JSON body's own field of the same name takes "
-                    "precedence.")
 
 
 @router.post("/calibrate", response_model=CalibrateResponse, openapi_extra=_CALIBRATE_BODY,
@@ -57,22 +54,18 @@ _QUERY_FOR_ARROW = ("For Arrow bodies; a JSON body's own field of the same name 
                         406: {"model": ErrorResponse}})
 async def calibrate(
     request: Request, calibrator: CalibratorDep, metrics: MetricsDep,
-    profile: Annotated[ProfileRefText | None, Query(
-        description=f"`name` or `name@version`. {_QUERY_FOR_ARROW}")] = None,
-    ellipse_confidence: Annotated[float | None, Query(
-        gt=0.0, lt=1.0, description=f"Default 0.95. {_QUERY_FOR_ARROW}")] = None,
-    levels: Annotated[list[float] | None, Query(
-        json_schema_extra=LEVELS_SCHEMA,
-        description=f"{LEVELS_TEXT} Repeat it. {_QUERY_FOR_ARROW}")] = None,
+    query: Annotated[CalibrateQuery, Query()],
 ) -> Response:
     """Calibrate raw detections with the active (or a named) profile version: a JSON body
     (`CalibrateRequest`), or an Arrow IPC stream of one detection per row answered with an
-    Arrow stream (columns in docs/api.md)."""
+    Arrow stream (columns in docs/api.md). Arrow bodies are answered by the same engine
+    below FastAPI's routing (`app.arrow_fast`); this route documents them and serves JSON."""
     body = await request.body()
     arrow = body_media(request, ARROW_STREAM) == ARROW_STREAM
     accept(request, ARROW_STREAM if arrow else "application/json")
-    call = CalibrateCall("arrow" if arrow else "calibrate", body, profile, ellipse_confidence,
-                         None if levels is None else tuple(levels))
+    call = CalibrateCall("arrow" if arrow else "calibrate", body, query.profile,
+                         query.ellipse_confidence,
+                         None if query.levels is None else tuple(query.levels))
     return await _serve(calibrator, metrics, call)
 
 

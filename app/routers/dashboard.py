@@ -26,7 +26,7 @@ from calibrators import ProfileReport
 router = APIRouter(tags=["dashboard"])
 
 
-def _renderer(request: Request) -> DashboardRenderer:
+async def _renderer(request: Request) -> DashboardRenderer:
     return request.app.state.dashboard
 
 

@@ -18,7 +18,7 @@ router = APIRouter(prefix="/v1", tags=["detect"], responses={
     code: {"model": ErrorResponse} for code in (404, 413, 415, 422, 503)})
 
 
-def _detectors(request: Request) -> DetectorService:
+async def _detectors(request: Request) -> DetectorService:
     return request.app.state.detectors
 
 

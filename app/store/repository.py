@@ -38,6 +38,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.store.aliases import AliasStore
 from app.store.audit import AuditEntry, AuditLog
+from app.store.changes import CommitMarker
 from app.store.dumps import DumpFiles
 from app.store.files import private_dir, private_sqlite
 from app.store.health import HealthStore
@@ -105,6 +106,14 @@ class Store(AuditLog, AliasStore, DumpFiles, JobQueue, HealthStore):
                 if attempt == 2:
                     raise
         self._session = sessionmaker(self.engine, expire_on_commit=False)
+        self._marker = (CommitMarker(Path(parsed.database)) if is_sqlite and parsed.database
+                        and parsed.database != ":memory:" else None)
+
+    def commit_marker(self) -> int | None:
+        """A number that changes whenever anything is committed to the database (SQLite,
+        `app.store.changes`), or None where the backend offers none (Postgres): callers
+        caching what the database says then read it again every time."""
+        return None if self._marker is None else self._marker.value()
 
     def _serialize(self, conn: Connection | Session, scope: str, name: str) -> None:
         """Hold a lock on (`scope`, `name`) until the transaction ends; call it first.
@@ -122,6 +131,8 @@ class Store(AuditLog, AliasStore, DumpFiles, JobQueue, HealthStore):
 
     def close(self) -> None:
         """Release every pooled connection."""
+        if self._marker is not None:
+            self._marker.close()
         self.engine.dispose()
 
     @contextmanager
