@@ -1,14 +1,15 @@
 """Turn validated request detections into library arrays, calibrate, and build response rows.
 
 Detections of one request may mix evidence forms (logits, per-layer logits, per-class scores,
-one score + label) and uncertainty forms (covariance, layer boxes, none); they are grouped by
-form and shape (`GroupKey`), each group goes through `CalibrationProfile.calibrate` once, and
-the rows come back in request order. Every check against the profile (column width, the
-covariance the profile's source needs, PSD, modulation's layers, the served levels) lives in
-the library: a `FieldError` it raises is mapped here to the request's field path (`locate`,
-or the request's `levels` / `ellipse_confidence`) and a 422. A calibrated number that is not
-finite (inputs so large that Σ' or an ellipse overflows float64) is a 422 at the detection's
-`covariance` (or `box`), never a non-JSON `Infinity`.
+one score + label) and uncertainty forms (covariance, layer boxes, box hypotheses, none);
+they are grouped by form and shape (`GroupKey`), each group goes through
+`CalibrationProfile.calibrate` once, and the rows come back in request order. Every check
+against the profile (column width, the covariance the profile's source needs, PSD,
+modulation's layers, the served levels) lives in the library: a `FieldError` it raises is
+mapped here to the request's field path (`locate`, or the request's `levels` /
+`ellipse_confidence`) and a 422. A calibrated number that is not finite (inputs so large that
+Σ' or an ellipse overflows float64) is a 422 at the detection's `covariance` (or `box`),
+never a non-JSON `Infinity`.
 """
 
 from __future__ import annotations
@@ -39,6 +40,8 @@ class GroupKey(NamedTuple):
     n_logit_layers: int  # L of layer_logits (0 otherwise)
     cov_dim: int         # D of a given covariance (0: none given)
     n_box_layers: int    # L of layer_boxes (0: none given)
+    n_hyp_boxes: int     # H of hypothesis_boxes (0: none given)
+    n_hyp_scores: int    # H of hypothesis_scores (0: none given; the library checks the pair)
 
 
 @dataclass
@@ -51,6 +54,8 @@ class _Group:
     boxes: list[list[float]] = field(default_factory=list)
     covariances: list[list[list[float]]] = field(default_factory=list)
     layer_boxes: list[list[list[float]]] = field(default_factory=list)
+    hyp_boxes: list[list[list[float]]] = field(default_factory=list)
+    hyp_scores: list[list[float]] = field(default_factory=list)
     ego_xy: list[list[float]] = field(default_factory=list)
 
 
@@ -132,6 +137,10 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
                 g.covariances.append(det.covariance)
             if det.layer_boxes is not None:
                 g.layer_boxes.append(det.layer_boxes)
+            if det.hypothesis_boxes is not None:
+                g.hyp_boxes.append(det.hypothesis_boxes)
+            if det.hypothesis_scores is not None:
+                g.hyp_scores.append(det.hypothesis_scores)
             g.ego_xy.append(ego)
             flat.append(det)
             where.append((fi, di))
@@ -169,14 +178,17 @@ def _evidence(det: DetectionIn, at: tuple[int, int, Locate], classes: Sequence[s
     width = 0 if kind == "score" else len(evidence[-1] if n_logit_layers else evidence)
     key = GroupKey(kind, width, n_logit_layers,
                    0 if det.covariance is None else len(det.covariance),
-                   0 if det.layer_boxes is None else len(det.layer_boxes))
+                   0 if det.layer_boxes is None else len(det.layer_boxes),
+                   0 if det.hypothesis_boxes is None else len(det.hypothesis_boxes),
+                   0 if det.hypothesis_scores is None else len(det.hypothesis_scores))
     return key, evidence, label
 
 
 #: Library argument -> request field (`logits` is whatever evidence field the group used).
 _REQUEST_FIELD = {"scores": "score", "labels": "label", "boxes": "box", "distances": "box",
                   "covariances": "covariance", "layer_boxes": "layer_boxes",
-                  "layer_logits": "layer_logits"}
+                  "layer_logits": "layer_logits", "hyp_boxes": "hypothesis_boxes",
+                  "hyp_scores": "hypothesis_scores"}
 
 
 def _located(exc: FieldError, key: GroupKey, g: _Group, where: list[tuple[int, int]],
@@ -208,6 +220,10 @@ def _arrays(key: GroupKey, g: _Group, confidence: float) -> dict[str, object]:
         kwargs["covariances"] = np.asarray(g.covariances, dtype=np.float64)
     if key.n_box_layers:
         kwargs["layer_boxes"] = np.asarray(g.layer_boxes, dtype=np.float64)
+    if key.n_hyp_boxes:
+        kwargs["hyp_boxes"] = np.asarray(g.hyp_boxes, dtype=np.float64)
+    if key.n_hyp_scores:
+        kwargs["hyp_scores"] = np.asarray(g.hyp_scores, dtype=np.float64)
     return kwargs
 
 

@@ -25,7 +25,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Write the profile's score calibration, covariance scaling and regions "
                     "as a graph that takes the detector's tensors (logits or per-layer "
                     "logits, boxes or per-layer boxes, the raw covariance for cov_source "
-                    "'given', ego position) and returns calibrated scores, covariances and "
+                    "'given', the box hypotheses and group scores for 'hypotheses', ego "
+                    "position) and returns calibrated scores, covariances and "
                     "ellipses; see docs/export.md.")
     ex.add_argument("profile", metavar="PROFILE",
                     help="profile JSON file, or a stored profile: name, name@version or "

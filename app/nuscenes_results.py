@@ -40,7 +40,7 @@ def box_to_detection(box: NuScenesBox, loc: Sequence[str | int]) -> DetectionIn:
         score=None if logits is not None else box.detection_score,
         label=None if logits is not None else box.detection_name,
         box=[*centre, *box.size, yaw, *box.velocity], layer_boxes=None,
-        covariance=box.covariance)
+        covariance=box.covariance, hypothesis_boxes=None, hypothesis_scores=None)
 
 
 def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: float,

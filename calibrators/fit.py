@@ -18,7 +18,8 @@
    (Eq. 4-1, `calibrators.modulation`). Matching and labels stay those of the raw detector;
 6. covariance stage (`calibrators.fit_regions`): residuals (matched ground truth − final box)
    of the TPs over `dims` (yaw wrapped), the raw covariance from `cov_source` (`given`
-   det_cov, `layers` spread across decoder layers, `none`), then `Σ + k_c·d·I` or
+   det_cov, `layers` spread across decoder layers, `hypotheses` group-score-weighted spread
+   of the det_hyp_boxes, `none`), then `Σ + k_c·d·I` or
    `s_c·Σ + k_c·d·I` per predicted class with BEV distance from the ego;
 7. region stage: split-conformal radii per class × distance bin on the calibration part
    (its frames were not used for Σ'), or the Gaussian χ²₂ radii;

@@ -29,6 +29,7 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
+from calibrators.apply import source_arrays
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.fit_regions import xy_mahalanobis
@@ -167,19 +168,22 @@ def feedback_source(dump: Dump, profile: CalibrationProfile) -> str:
     """The covariance source whose stage scores `dump`: the profile's primary source if the dump
     provides it (what `apply_profile`, `summarize` and `detcal evaluate` use), else the first
     of its other sources the dump provides, in the order the service prefers them (`given`
-    covariances, the `layers` spread, `none`); a FieldError (`dump`) if none."""
+    covariances, the `hypotheses` spread, the `layers` spread, `none`); a FieldError
+    (`dump`) if none."""
     if tuple(profile.classes) != tuple(dump.classes) or profile.score_mode != dump.score_mode:
         raise FieldError("dump", f"profile is for {profile.score_mode} classes "
                                  f"{list(profile.classes)} but the feedback has "
                                  f"{dump.score_mode} classes {list(dump.classes)}")
     provides = {"given": dump.det_cov is not None and dump.cov_dims == tuple(profile.cov_dims),
-                "layers": dump.n_layers >= 2, "none": True}
-    for source in (profile.cov_source, "given", "layers", "none"):
+                "hypotheses": dump.n_hypotheses > 0, "layers": dump.n_layers >= 2,
+                "none": True}
+    for source in (profile.cov_source, *provides):
         if source in profile._sources and provides[source]:
             return source
     raise FieldError("dump", f"the profile scores covariances from {list(profile._sources)}; "
                              f"the feedback provides none of them (covariances over "
-                             f"{list(profile.cov_dims)}, or at least 2 decoder layers)")
+                             f"{list(profile.cov_dims)}, box hypotheses, or at least 2 "
+                             f"decoder layers)")
 
 
 def region_groups(profile: CalibrationProfile, source: str | None = None) -> RegionGroups:
@@ -287,9 +291,7 @@ def _served(dump: Dump, profile: CalibrationProfile, source: str, levels: np.nda
     def calibrate(at: list[float] | None) -> CalibratedDetections:
         return profile.calibrate(
             layer_logits=dump.det_logits, boxes=dump.final_boxes,
-            covariances=dump.det_cov if source == "given" else None,
-            layer_boxes=dump.det_boxes if source == "layers" else None,
-            ego_xy=dump.ego_xy(dump.det_frame), levels=at)
+            **source_arrays(dump, source), ego_xy=dump.ego_xy(dump.det_frame), levels=at)
 
     try:
         return calibrate(levels.tolist())

@@ -19,6 +19,7 @@ import numpy as np
 
 from calibrators.covariance import layer_spread
 from calibrators.dump import Dump
+from calibrators.hypotheses import hypotheses_covariance
 from calibrators.matching import MatchResult, match
 from calibrators.modulation import modulate_logits
 from calibrators.options import OptionError
@@ -29,11 +30,13 @@ __all__ = ["check_dims", "held_out_frames", "match_dump", "raw_covariances", "re
 
 
 def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> str:
-    """The covariance source to use: `given`, `layers` or `none`.
+    """The covariance source to use: `given`, `layers`, `hypotheses` or `none`.
 
     `auto` is `given` when the dump carries `det_cov` over exactly `dims`, else `layers` when
-    it has at least two decoder layers, else `none`. An explicit source the dump cannot
-    provide raises an `OptionError` naming `cov_source`.
+    it has at least two decoder layers, else `none`. `auto` never picks `hypotheses`: it is
+    asked for by name (a dump fit with `auto` keeps the source it had before the hypothesis
+    arrays existed, and `other_sources` fits a `hypotheses` stage beside it anyway). An
+    explicit source the dump cannot provide raises an `OptionError` naming `cov_source`.
     """
     if cov_source not in COV_SOURCE_CHOICES:
         raise OptionError("cov_source", f"cov_source must be one of {list(COV_SOURCE_CHOICES)}, "
@@ -51,6 +54,11 @@ def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> st
     if cov_source == "layers" and dump.n_layers < 2:
         raise OptionError("cov_source", f"cov_source='layers' needs at least 2 decoder "
                                         f"layers, the dump has {dump.n_layers}")
+    if cov_source == "hypotheses" and dump.n_hypotheses == 0:
+        raise OptionError("cov_source", "cov_source='hypotheses' needs the dump's box "
+                                        "hypotheses (det_hyp_boxes [N, H, 9] and "
+                                        "det_hyp_scores [N, H], from group regression "
+                                        "heads); the dump has none")
     return cov_source
 
 
@@ -60,6 +68,8 @@ def raw_covariances(dump: Dump, source: str, dims: tuple[str, ...]) -> np.ndarra
         return dump.det_cov
     if source == "layers":
         return layer_spread(dump.det_boxes, dims)
+    if source == "hypotheses":
+        return hypotheses_covariance(dump.det_hyp_boxes, dump.det_hyp_scores, dims)
     return None
 
 

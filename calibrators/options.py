@@ -54,8 +54,9 @@ class FitOptions:
     """Options of `fit_profile` (defaults are the documented ones; see docs/science.md).
 
     threshold: matching distance in m (> 0). dims: regression box fields (`("x", "y")`; a
-    string `"x,y"` is accepted). cov_source: `auto` | `given` | `layers` | `none` (`auto`:
-    given if the dump has det_cov over `dims`, else layers if L >= 2, else none). holdout:
+    string `"x,y"` is accepted). cov_source: `auto` | `given` | `layers` | `hypotheses` | `none`
+    (`auto`: given if the dump has det_cov over `dims`, else layers if L >= 2, else none;
+    `hypotheses`, the spread of the dump's det_hyp_boxes, only by name). holdout:
     fraction of frames in [0, 1) kept for the report. min_score: drop detections with a raw
     score below it (None: all queries). min_samples: matches a class needs for its own k
     (else the pooled k). seed: the hold-out split's seed. modulation: logits modulation before
@@ -74,7 +75,8 @@ class FitOptions:
     threshold: float = _opt(2.0, "matching distance in m", float)
     dims: tuple[str, ...] = _opt(("x", "y"), "regression box fields, comma separated", str)
     cov_source: str = _opt("auto", "raw covariance: the dump's det_cov (given), the spread "
-                           "across decoder layers (layers), none, or auto", str,
+                           "across decoder layers (layers), the spread of the group heads' box "
+                           "hypotheses (hypotheses), none, or auto", str,
                            COV_SOURCE_CHOICES)
     holdout: float = _opt(0.0, "fraction of frames held out for the report, in [0, 1)", float)
     min_score: float | None = _opt(None, "only detections with a raw score >= this take part "

@@ -42,7 +42,8 @@ class CalibrationProfile:
     cov_dims : regression dims of Σ (D).
     modulation : True if logits modulation (Eq. 4-1) runs before the temperature; then
         `calibrate` needs the per-layer logits. Absent from older JSON: read as False.
-    cov_source : "given" | "layers" | "none" (where Σ comes from before depth scaling).
+    cov_source : "given" | "layers" | "hypotheses" | "none" (where Σ comes from before depth
+        scaling; `calibrators.vocab.COV_SOURCES`).
     depth_k : class name -> k >= 0.                   pooled_k : k for classes not in depth_k.
     fallback_classes : classes whose k (and s) are pooled (too few matches when fit).
     matching : {"rule": "center_distance", "threshold": metres}.
@@ -209,13 +210,18 @@ class CalibrationProfile:
                   layer_boxes: np.ndarray | None = None, ego_xy: np.ndarray | None = None,
                   ellipse_confidence: float = 0.95,
                   layer_logits: np.ndarray | None = None,
-                  levels: np.ndarray | list[float] | None = None) -> CalibratedDetections:
-        """Calibrate N detections; `calibrators.serving.calibrate_detections` says how."""
+                  levels: np.ndarray | list[float] | None = None,
+                  hyp_boxes: np.ndarray | None = None,
+                  hyp_scores: np.ndarray | None = None) -> CalibratedDetections:
+        """Calibrate N detections; `calibrators.serving.calibrate_detections` says how
+        (`hyp_boxes [N, H, 9]` and `hyp_scores [N, H]`: the box hypotheses a `hypotheses`
+        covariance source needs)."""
         return calibrate_detections(self, logits=logits, scores=scores, labels=labels,
                                     boxes=boxes, covariances=covariances,
                                     layer_boxes=layer_boxes, ego_xy=ego_xy,
                                     ellipse_confidence=ellipse_confidence,
-                                    layer_logits=layer_logits, levels=levels)
+                                    layer_logits=layer_logits, levels=levels,
+                                    hyp_boxes=hyp_boxes, hyp_scores=hyp_scores)
 
 
 def make_provenance(**counts: Any) -> dict[str, Any]:

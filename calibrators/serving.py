@@ -7,12 +7,16 @@ The label is the arg-max of the raw final layer and never changes. The score is
 score, `sigmoid(logit(p) / T)`), or the profile's per-class calibrator of the label's logit
 (`logit(p)` of a raw score; range-conditioned methods use the distance). A profile with
 `modulation` needs `layer_logits` (L >= 2): `z` is then modulated over all layers.
-`boxes [N, 9]` (required) give the distance `d` from `ego_xy [N, 2]` (default origin). Σ comes
-from the profile's `cov_source`: `covariances [N, D, D]` ("given"), `layer_boxes [N, L, 9]`
-("layers", spread across decoder layers) or zeros ("none"); `layer_boxes` are ignored
-otherwise. `Σ' = Σ + k_c·d·I`, or `s_c·Σ + k_c·d·I` with a shrinkage stage. Regions are
-ellipses of the x, y block of `Σ'` with semi-axes `r_q·sqrt(λ)`: `r_q = sqrt(χ²₂(q))`
-(gaussian) or the conformal radius of the detection's class × distance group.
+`boxes [N, 9]` (required) give the distance `d` from `ego_xy [N, 2]` (default origin). Σ
+comes from the profile's `cov_source`: `covariances [N, D, D]` ("given"),
+`layer_boxes [N, L, 9]` ("layers", spread across decoder layers), `hyp_boxes [N, H, 9]` with
+`hyp_scores [N, H]` ("hypotheses", the group-score-weighted spread of the group heads' box
+hypotheses) or zeros ("none"). A profile serving several sources takes, of what the call
+carries, given covariances first, then the hypotheses, then the layer spread, then none;
+`layer_boxes` and the hypotheses are ignored when the profile does not serve their source.
+`Σ' = Σ + k_c·d·I`, or `s_c·Σ + k_c·d·I` with a shrinkage stage. Regions are ellipses of the
+x, y block of `Σ'` with semi-axes `r_q·sqrt(λ)`: `r_q = sqrt(χ²₂(q))` (gaussian) or the
+conformal radius of the detection's class × distance group.
 """
 
 from __future__ import annotations
@@ -36,6 +40,7 @@ from calibrators.covariance import layer_spread
 from calibrators.depth import add_depth_term
 from calibrators.ellipse import Ellipse, ellipse, radius_ellipse
 from calibrators.exceptions import FieldError
+from calibrators.hypotheses import check_hypotheses, hypotheses_covariance
 from calibrators.levels import MAX_LEVELS, check_levels, gaussian_radius
 from calibrators.modulation import modulate_logits
 from calibrators.scores import class_probabilities, label_logit, predict, probability_logit
@@ -60,7 +65,8 @@ class CalibratedDetections:
     [N] for each requested level; region_method: `gaussian` | `conformal` (None without x, y);
     region_groups: [N] the conformal group serving each detection, e.g. `car 15-30 m`
     (None for gaussian); region_radii: level -> Mahalanobis radius [N] of each region;
-    cov_source: the covariance source that served the call (`given`, `layers`, `none`).
+    cov_source: the covariance source that served the call (`given`, `layers`, `hypotheses`,
+    `none`).
     """
 
     labels: np.ndarray
@@ -86,8 +92,9 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
                          layer_boxes: np.ndarray | None = None,
                          ego_xy: np.ndarray | None = None, ellipse_confidence: float = 0.95,
                          layer_logits: np.ndarray | None = None,
-                         levels: Sequence[float] | np.ndarray | None = None
-                         ) -> CalibratedDetections:
+                         levels: Sequence[float] | np.ndarray | None = None,
+                         hyp_boxes: np.ndarray | None = None,
+                         hyp_scores: np.ndarray | None = None) -> CalibratedDetections:
     """Calibrate N detections with `profile` (module docstring). `levels`: the region levels
     to serve (at most 20, each in (0, 1)); a FieldError names the argument at fault."""
     box = as_float_array("boxes", _required("boxes", boxes), ndim=2)
@@ -101,7 +108,8 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
     labels_, scores_, raw, class_scores = _class_evidence(profile, logits, scores, labels,
                                                           layer_logits, distances)
     check_length("boxes", box, len(labels_), "the class evidence")
-    stage, base = _base_covariance(profile, covariances, layer_boxes, n)
+    stage, base = _base_covariance(profile, covariances, layer_boxes, (hyp_boxes, hyp_scores),
+                                   n)
     cov = _scaled(profile, stage, base, distances, labels_)
     wanted = None if levels is None else check_levels(levels)
     confidence = check_levels([ellipse_confidence], "ellipse_confidence")[0]
@@ -214,10 +222,13 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
 
 
 def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None,
-                     layer_boxes: np.ndarray | None, n: int) -> tuple[SourceStage, np.ndarray]:
+                     layer_boxes: np.ndarray | None,
+                     hypotheses: tuple[np.ndarray | None, np.ndarray | None], n: int
+                     ) -> tuple[SourceStage, np.ndarray]:
     """The stage serving this call and its `[N, D, D]` Σ before scaling: given `covariances`
-    if passed, else the spread of `layer_boxes` if passed and the profile serves it, else
-    none (Σ = 0) if the profile serves it; a FieldError names what the profile needs."""
+    if passed, else the spread of the `hypotheses` (`hyp_boxes`, `hyp_scores`) if passed
+    and the profile serves them, else the spread of `layer_boxes` likewise, else none (Σ = 0)
+    if the profile serves it; a FieldError names what the profile needs."""
     dim = len(profile.cov_dims)
     stages = profile._sources
     if covariances is not None:
@@ -232,25 +243,41 @@ def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None
                                             f"{list(profile.cov_dims)} need {dim}x{dim}")
         check_covariances("covariances", cov, n=n, dim=dim)
         return stages["given"], cov
+    hyp_boxes, hyp_scores = hypotheses
+    if (hyp_boxes is None) != (hyp_scores is None):
+        missing, given = (("hyp_boxes", "hyp_scores") if hyp_boxes is None
+                          else ("hyp_scores", "hyp_boxes"))
+        raise FieldError(missing, f"{given} is given without {missing}: the box hypotheses "
+                                  f"and their group scores go together")
+    if hyp_boxes is not None and "hypotheses" in stages:
+        boxes, scores = check_hypotheses(hyp_boxes, hyp_scores, n)
+        return stages["hypotheses"], hypotheses_covariance(boxes, scores, profile.cov_dims)
     if layer_boxes is not None and "layers" in stages:
         spread = layer_spread(layer_boxes, profile.cov_dims)
         check_length("layer_boxes", spread, n, "boxes")
         return stages["layers"], spread
     if "none" in stages:
         return stages["none"], np.zeros((n, dim, dim))
-    if "layers" in stages:
-        raise FieldError("layer_boxes", f"layer_boxes (the profile's cov_source is 'layers') "
-                                        f"is required{_takes(profile)}")
+    for source in dict.fromkeys((profile.cov_source, "layers", "hypotheses")):
+        if source in stages and source in _NEEDS:
+            name, what = _NEEDS[source]
+            raise FieldError(name, f"{name}{what} (the profile's cov_source is "
+                                   f"{profile.cov_source!r}) is required{_takes(profile)}")
     raise FieldError("covariances", f"covariances are required: the profile was fit on given "
                                     f"covariances (cov_source 'given') over cov_dims "
                                     f"{list(profile.cov_dims)}")
+
+
+#: What a request must carry for a covariance source other than `given` and `none`.
+_NEEDS = {"layers": ("layer_boxes", ""), "hypotheses": ("hyp_boxes", " with hyp_scores")}
 
 
 def _takes(profile: CalibrationProfile) -> str:
     """`; it takes ...` for a profile serving several covariance sources."""
     if len(profile._sources) < 2:
         return ""
-    words = {"given": "covariances", "layers": "layer_boxes", "none": "neither"}
+    words = {"given": "covariances", "layers": "layer_boxes",
+             "hypotheses": "hyp_boxes with hyp_scores", "none": "neither"}
     return "; it takes " + " or ".join(words[s] for s in profile._sources)
 
 

@@ -13,6 +13,11 @@ calibrators should recover:
   scaling with `cov_source="given"` recovers `k_c`.
 - **layers**: earlier decoder layers deviate more from the final box (and their spread grows
   with distance), so the spread across layers is a usable covariance source.
+- **hypotheses** (`n_hypotheses = H > 0`): every detection gets H box hypotheses with group
+  scores; the top-scoring one is the final box, the others lie around it with the detection's
+  true position noise `Σ_i + k_c · d_i · I`, so their group-score-weighted spread is a usable
+  covariance source. They are drawn after everything else: a dump's other arrays do not
+  depend on `n_hypotheses`.
 
 True positives are copies of ground-truth boxes; false positives are placed at least
 `_FP_CLEARANCE` m from every ground-truth box of their frame, so the nuScenes matching at 2 m
@@ -64,16 +69,21 @@ def synthetic_dump(n_frames: int = 50, n_gt_per_frame: int = 20,
                    classes: Sequence[str] = CLASSES10, score_mode: str = "sigmoid",
                    n_layers: int = 3, temperature: float = 2.0,
                    depth_k: Mapping[str, float] | None = None, seed: int = 0,
-                   with_cov: bool = True) -> Dump:
+                   with_cov: bool = True, n_hypotheses: int = 0) -> Dump:
     """A `Dump` of `n_frames` ego-frame frames with known temperature and per-class k.
 
     `depth_k` maps class name -> true k (classes absent from it take 0.004); default
     `DEFAULT_DEPTH_K`. Expect about `0.9 · n_frames · n_gt_per_frame` true positives and
     about 1.4 times as many false positives. `det_cov` (`[N, 2, 2]` over x, y) is the small,
     overconfident covariance the detector reports, present when `with_cov`.
+    `n_hypotheses`: H box hypotheses per detection (`det_hyp_boxes [N, H, 9]`,
+    `det_hyp_scores [N, H]`; module docstring), none when 0.
     """
     classes = tuple(str(c) for c in classes)
     _check_args(n_frames, n_gt_per_frame, classes, score_mode, n_layers, temperature)
+    if isinstance(n_hypotheses, bool) or int(n_hypotheses) != n_hypotheses or n_hypotheses < 0:
+        raise ValueError(f"n_hypotheses must be an integer >= 0, got {n_hypotheses!r}")
+    n_hypotheses = int(n_hypotheses)
     k_true = dict(DEFAULT_DEPTH_K if depth_k is None else depth_k)
     for name, k in k_true.items():
         if not np.isfinite(k) or k < 0:
@@ -107,12 +117,18 @@ def synthetic_dump(n_frames: int = 50, n_gt_per_frame: int = 20,
 
     logits = _emitted_logits(rng, rows, n_layers, temperature)
     layer_boxes = _layer_boxes(rng, final, ks[det_labels], n_layers)
+    hyp_boxes = hyp_scores = None
+    if n_hypotheses:
+        d = np.hypot(final[:, 0], final[:, 1])
+        noise = cov + (ks[det_labels] * d)[:, None, None] * np.eye(2)
+        hyp_boxes, hyp_scores = _hypotheses(rng, final, noise, n_hypotheses)
     return Dump(
         classes=classes, score_mode=score_mode,
         frame_ids=np.array([f"synth-{seed}-{i:05d}" for i in range(n_frames)]),
         det_frame=det_frame, det_logits=logits, det_boxes=layer_boxes,
         gt_frame=gt_frame, gt_labels=gt_labels, gt_boxes=gt_boxes,
         det_cov=cov if with_cov else None, cov_dims=("x", "y"),
+        det_hyp_boxes=hyp_boxes, det_hyp_scores=hyp_scores,
     )
 
 
@@ -279,3 +295,21 @@ def _layer_boxes(rng: np.random.Generator, final: np.ndarray, k: np.ndarray, n_l
     out[:, :, 6] = wrap_angle(out[:, :, 6])
     out[:, -1] = final
     return out
+
+
+def _hypotheses(rng: np.random.Generator, final: np.ndarray, noise: np.ndarray, n_hyp: int
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """`[N, H, 9]` box hypotheses and `[N, H]` group scores: the detection's own group (a
+    random one) scores highest and its hypothesis is `final [N, 9]`; the others lie around it
+    in x, y with covariance `noise [N, 2, 2]`."""
+    n = len(final)
+    rows = np.arange(n)
+    scores = rng.uniform(0.05, 1.0, (n, n_hyp))
+    own = rng.integers(0, n_hyp, n)
+    scores[rows, own] += 1.0
+    boxes = np.repeat(final[:, None], n_hyp, axis=1)
+    step = np.einsum("nij,nhj->nhi", np.linalg.cholesky(noise),
+                     rng.standard_normal((n, n_hyp, 2)))
+    boxes[:, :, :2] += step
+    boxes[rows, own] = final
+    return boxes, scores

@@ -18,8 +18,9 @@ BOX_FIELDS: tuple[str, ...] = ("x", "y", "z", "w", "l", "h", "yaw", "vx", "vy")
 #: Column of each box field.
 BOX_INDEX: dict[str, int] = {name: i for i, name in enumerate(BOX_FIELDS)}
 #: Where a profile's raw covariance Σ comes from: the detection's own `covariance` (`given`),
-#: the spread of its box across decoder layers (`layers`), or nowhere (`none`, Σ = 0).
-COV_SOURCES: tuple[str, ...] = ("given", "layers", "none")
+#: the spread of its box across decoder layers (`layers`), or nowhere (`none`, Σ = 0), or the
+#: group-score-weighted spread of its H box hypotheses (`hypotheses`, group regression heads).
+COV_SOURCES: tuple[str, ...] = ("given", "layers", "none", "hypotheses")
 #: What a fit accepts for `cov_source`: a source, or `auto` (resolved from the dump).
 COV_SOURCE_CHOICES: tuple[str, ...] = ("auto", *COV_SOURCES)
 #: `sigmoid`: C independent class logits; `softmax`: C + 1 columns, the last is no-object.

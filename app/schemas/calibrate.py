@@ -9,6 +9,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    ValidationInfo,
     WithJsonSchema,
     field_validator,
     model_validator,
@@ -79,13 +80,17 @@ _EVIDENCE = [_given("logits"), _given("layer_logits"), _given("scores"),
              {"required": ["score", "label"], "properties": {
                  "score": {"type": "number"}, "label": {"type": ["string", "integer"]}}}]
 _BOXES = [_given("box"), _given("layer_boxes")]
+#: The box hypotheses come together or not at all (the library refuses one without the other).
+_HYPOTHESES = {"hypothesis_boxes": ["hypothesis_scores"],
+               "hypothesis_scores": ["hypothesis_boxes"]}
 
 
 class DetectionIn(BaseModel):
     """One raw detection: class evidence (exactly one form), a box, optional uncertainty."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={
-        "examples": [_EXAMPLE_DETECTION], "allOf": [{"oneOf": _EVIDENCE}, {"anyOf": _BOXES}]})
+        "examples": [_EXAMPLE_DETECTION], "allOf": [{"oneOf": _EVIDENCE}, {"anyOf": _BOXES}],
+        "dependentRequired": _HYPOTHESES})
 
     id: str | int | None = Field(None, description="Echoed back unchanged.")
     logits: Row | None = Field(None, min_length=1, description="Final-layer logits `[C']`.")
@@ -103,6 +108,16 @@ class DetectionIn(BaseModel):
         None, min_length=1, description=f"Box of every decoder layer `[L, {len(BOX_FIELDS)}]`.")
     covariance: Covariance | None = Field(
         None, description="Box covariance `[D, D]` over the profile's `cov_dims`.")
+    hypothesis_boxes: list[Annotated[Row, Field(min_length=len(BOX_FIELDS),
+                                                max_length=len(BOX_FIELDS))]] | None = Field(
+        None, min_length=1, description=f"Final-layer box of each of the detection's H group "
+                                        f"regression heads `[H, {len(BOX_FIELDS)}]` (with "
+                                        f"`hypothesis_scores`); what a profile with "
+                                        f"cov_source `hypotheses` needs.")
+    hypothesis_scores: list[Annotated[Finite, Field(ge=0.0)]] | None = Field(
+        None, min_length=1, description="Group score of each hypothesis `[H]` (the summed "
+                                        "class probabilities of its group, >= 0; H as in "
+                                        "`hypothesis_boxes`).")
 
     @field_validator("box")
     @classmethod
@@ -118,10 +133,11 @@ class DetectionIn(BaseModel):
         _rectangular("layer_logits", v)
         return v
 
-    @field_validator("layer_boxes")
+    @field_validator("layer_boxes", "hypothesis_boxes")
     @classmethod
-    def _layer_boxes(cls, v: list[list[float]] | None) -> list[list[float]] | None:
-        _rectangular("layer_boxes", v, len(BOX_FIELDS))
+    def _box_rows(cls, v: list[list[float]] | None, info: ValidationInfo
+                  ) -> list[list[float]] | None:
+        _rectangular(str(info.field_name), v, len(BOX_FIELDS))
         return v
 
     @model_validator(mode="after")

@@ -9,7 +9,9 @@ A request batch has one row per detection:
 - `box` (list `[9]` or `[7]`: no velocity) or `layer_boxes` (list of lists `[L][9]`, the last
   is the final box);
 - `covariance` (list `[D·D]`, row-major over the profile's `cov_dims`, optional) and
-  `ego_translation` (list `[3]` or `[2]`, optional; default the origin).
+  `ego_translation` (list `[3]` or `[2]`, optional; default the origin);
+- `hypothesis_boxes` (list of lists `[H][9]`, or a list `[H·9]`: each group head's box) with
+  `hypothesis_scores` (list `[H]`: their group scores), optional, both or neither.
 
 Lists may be fixed-size or variable-size Arrow lists, but every row of a column must have the
 same length; numbers may be any integer or float type and no value may be null. A column that
@@ -38,12 +40,14 @@ from calibrators.serving import CalibratedDetections
 ARROW_STREAM = "application/vnd.apache.arrow.stream"
 EVIDENCE_COLUMNS = ("logits", "layer_logits", "score")
 KNOWN_COLUMNS = frozenset({"frame_id", "id", *EVIDENCE_COLUMNS, "label", "box", "layer_boxes",
-                           "covariance", "ego_translation"})
+                           "covariance", "ego_translation", "hypothesis_boxes",
+                           "hypothesis_scores"})
 #: Library argument of `CalibrationProfile.calibrate` -> request column.
 LIBRARY_TO_COLUMN = {"logits": "logits", "layer_logits": "layer_logits", "scores": "score",
                      "labels": "label", "boxes": "box", "distances": "box",
                      "covariances": "covariance", "layer_boxes": "layer_boxes",
-                     "ego_xy": "ego_translation"}
+                     "ego_xy": "ego_translation", "hyp_boxes": "hypothesis_boxes",
+                     "hyp_scores": "hypothesis_scores"}
 
 
 @dataclass
@@ -134,6 +138,11 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> BatchRequest
             raise FieldError("covariance", f"covariance rows must hold D·D values (row-major "
                                            f"[D, D]), got {flat.shape[1]}")
         kwargs["covariances"] = flat.reshape(len(flat), dim, dim)
+    if "hypothesis_boxes" in names:
+        kwargs["hyp_boxes"] = _box_rows("hypothesis_boxes", batch.column("hypothesis_boxes"))
+    if "hypothesis_scores" in names:
+        kwargs["hyp_scores"] = _numbers("hypothesis_scores", batch.column("hypothesis_scores"),
+                                        (None,))
     if "ego_translation" in names:
         ego = _numbers("ego_translation", batch.column("ego_translation"), (None,))
         if ego.shape[1] not in (2, 3):
@@ -196,8 +205,7 @@ def _numbers(name: str, arr: pa.Array, shape: tuple[int | None, ...]) -> np.ndar
     _no_nulls(name, arr)
     values, dims = arr, []
     for want in shape:
-        if not (pa.types.is_list(values.type) or pa.types.is_large_list(values.type)
-                or pa.types.is_fixed_size_list(values.type)):
+        if not _is_list(values.type):
             raise FieldError(name, f"{name} must be a list column{'s of lists' * (len(shape) > 1)}"
                                    f" of numbers, got {arr.type}")
         if pa.types.is_fixed_size_list(values.type):
@@ -221,6 +229,24 @@ def _numbers(name: str, arr: pa.Array, shape: tuple[int | None, ...]) -> np.ndar
                                f"{values.type}")
     out = values.to_numpy(zero_copy_only=False).astype(np.float64, copy=False)
     return out.reshape(len(arr), *dims)
+
+
+def _box_rows(name: str, arr: pa.Array) -> np.ndarray:
+    """`[N, H, 9]` boxes of a list-of-lists column (`[H][9]`) or of a flat list column
+    (`[H·9]`, row-major)."""
+    values = arr.type.value_type if _is_list(arr.type) else None
+    if values is not None and _is_list(values):
+        return _numbers(name, arr, (None, 9))
+    flat = _numbers(name, arr, (None,))
+    if flat.shape[1] % 9:
+        raise FieldError(name, f"{name} rows must hold H·9 values (H boxes x y z w l h yaw "
+                               f"vx vy, row-major) or H lists of 9, got {flat.shape[1]}")
+    return flat.reshape(len(flat), -1, 9)
+
+
+def _is_list(kind: pa.DataType) -> bool:
+    return (pa.types.is_list(kind) or pa.types.is_large_list(kind)
+            or pa.types.is_fixed_size_list(kind))
 
 
 def _labels(arr: pa.Array, classes: Sequence[str]) -> np.ndarray:

@@ -9,6 +9,8 @@ len(cov_dims)):
     boxes [N, 9] | layer_boxes [N, L, 9]       (layer_boxes for cov_source "layers")
     ego_xy [N, 2]                              ego position of each detection's frame
     covariances_raw [N, D, D]                  only for cov_source "given" (Σ before scaling)
+    hyp_boxes [N, H, 9], hyp_scores [N, H]     only for cov_source "hypotheses" (the group
+                                               heads' box hypotheses and group scores)
 
 Outputs (a dict, in this order): labels [N] int64, scores [N], scores_raw [N], class_scores
 [N, C] (global temperature only), distances [N], covariances [N, D, D] (Σ'), and when
@@ -19,8 +21,8 @@ detection, described in the graph's metadata).
 A stage the graph cannot express, a covariance source the profile does not serve, or a
 nothing is dropped. A conformal level some group cannot bound is served as the library serves
 it: an infinite radius and infinite semi-axes (the whole plane).
-Input checks the library makes per request (NaN, shapes, L >= 2 for the layer spread) are the
-caller's: the graph computes what the numbers give.
+Input checks the library makes per request (NaN, shapes, L >= 2 for the layer spread,
+non-negative group scores) are the caller's: the graph computes what the numbers give.
 """
 
 from __future__ import annotations
@@ -44,6 +46,7 @@ from detectors.export.regions import (
     CovarianceScaling,
     EllipseAxes,
     GaussianRadii,
+    HypothesesSpread,
     LayerSpread,
 )
 from detectors.export.scores import (
@@ -141,6 +144,19 @@ class _GraphWithCovariances(CalibrationGraph):
         return self.calibrate(logits, boxes, ego_xy, covariances_raw)
 
 
+class _GraphWithHypotheses(CalibrationGraph):
+    """Inputs: class evidence, boxes, ego_xy, hyp_boxes, hyp_scores (cov_source
+    "hypotheses"): Σ is the hypotheses' spread."""
+
+    def __init__(self, *args: Any, hypotheses: HypothesesSpread, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.hypotheses = hypotheses
+
+    def forward(self, logits: Tensor, boxes: Tensor, ego_xy: Tensor, hyp_boxes: Tensor,
+                hyp_scores: Tensor) -> dict[str, Tensor]:
+        return self.calibrate(logits, boxes, ego_xy, self.hypotheses(hyp_boxes, hyp_scores))
+
+
 def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
                 levels: Sequence[float] = (0.95,), layer_logits: bool | None = None
                 ) -> CalibrationGraph:
@@ -173,7 +189,8 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
     has_xy = regions is not None
     inputs = ["layer_logits" if layer_logits else "logits",
               "layer_boxes" if source == "layers" else "boxes", "ego_xy",
-              *(["covariances_raw"] if source == "given" else [])]
+              *(["covariances_raw"] if source == "given" else []),
+              *(["hyp_boxes", "hyp_scores"] if source == "hypotheses" else [])]
     outputs = ["labels", "scores", "scores_raw",
                *(["class_scores"] if calibrator is None else []), "distances", "covariances",
                *(["radii", "semi_major", "semi_minor", "angle"] if has_xy else []),
@@ -188,7 +205,14 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
         "levels": wanted if has_xy else [], "region_groups": groups,
         "inputs": inputs, "outputs": outputs,
     }
-    cls = _GraphWithCovariances if source == "given" else _Graph
+    extra: dict[str, Any] = {}
+    cls: type[CalibrationGraph] = _Graph
+    if source == "given":
+        cls = _GraphWithCovariances
+    elif source == "hypotheses":
+        cls = _GraphWithHypotheses
+        extra["hypotheses"] = HypothesesSpread([BOX_INDEX[d] for d in dims],
+                                               [d == "yaw" for d in dims])
     return cls(scores, Modulation() if profile.modulation else None, spread,
                _scaling(profile, stage),
                EllipseAxes(dims.index("x"), dims.index("y")) if has_xy else None, regions,
@@ -196,7 +220,7 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
                layer_boxes=source == "layers", dim=len(dims),
                class_scores=calibrator is None, conformal=groups is not None,
                input_names=inputs, output_names=outputs,
-               metadata=json.dumps(metadata, allow_nan=False))
+               metadata=json.dumps(metadata, allow_nan=False), **extra)
 
 
 def _source(profile: CalibrationProfile, source: str) -> SourceStage:

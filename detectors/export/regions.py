@@ -1,7 +1,8 @@
 """The covariance and region stages of an exported profile as torch modules (float64).
 
-Mirrors `calibrators.covariance.layer_spread`, `calibrators.serving._scaled` and `_regions`,
-and `calibrators.ellipse`: `Σ` from the layer spread (`LayerSpread`), `Σ' = [s_c·]Σ + k_c·d·I`
+Mirrors `calibrators.covariance.layer_spread`, `calibrators.hypotheses.hypotheses_covariance`,
+`calibrators.serving._scaled` and `_regions`, and `calibrators.ellipse`: `Σ` from the layer
+spread (`LayerSpread`) or the box hypotheses (`HypothesesSpread`), `Σ' = [s_c·]Σ + k_c·d·I`
 (`CovarianceScaling`), the eigen-decomposition of its x, y block (`EllipseAxes`) and the
 Mahalanobis radius of each level (`GaussianRadii`, `ConformalRadii`).
 
@@ -41,6 +42,39 @@ class LayerSpread(nn.Module):
             values = torch.where(self.yaw, wrapped, values)
         centred = values - values.mean(dim=1, keepdim=True)
         return torch.matmul(centred.transpose(1, 2), centred) / (values.shape[1] - 1)
+
+
+class HypothesesSpread(nn.Module):
+    """Group-score-weighted covariance `[N, D, D]` of box hypotheses `[N, H, 9]` with scores
+    `[N, H]` over the box columns `index [D]` (weights `s / Σ s`, equal where a row's scores
+    sum to 0); the columns at `yaw [D]` (True) are wrapped to (−pi, pi] around the
+    highest-scoring hypothesis's yaw before the covariance is taken."""
+
+    def __init__(self, index: list[int], yaw: list[bool]) -> None:
+        super().__init__()
+        self.register_buffer("index", torch.tensor(index, dtype=torch.int64))
+        self.register_buffer("yaw", torch.tensor(yaw, dtype=torch.bool))
+        self.any_yaw = bool(any(yaw))
+        self.register_buffer("pi", constant(math.pi))
+
+    def forward(self, hyp_boxes: Tensor, hyp_scores: Tensor) -> Tensor:
+        values = hyp_boxes.to(torch.float64).index_select(2, self.index)      # [N, H, D]
+        scores = hyp_scores.to(torch.float64)                                  # [N, H]
+        total = scores.sum(dim=1, keepdim=True)
+        equal = torch.ones_like(scores) / scores.shape[1]
+        safe = torch.where(total > 0.0, total, torch.ones_like(total))
+        weights = torch.where(total > 0.0, scores / safe, equal)
+        if self.any_yaw:   # around the top hypothesis, as calibrators.vocab.wrap_angle
+            top = scores.argmax(dim=1, keepdim=True).unsqueeze(2)             # [N, 1, 1]
+            ref = values.gather(1, top.expand(-1, 1, values.shape[2]))         # [N, 1, D]
+            turn = self.pi - (values - ref)
+            wrapped = ref + (self.pi - (turn - 2.0 * self.pi
+                                        * torch.floor(turn / (2.0 * self.pi))))
+            values = torch.where(self.yaw, wrapped, values)
+        mean = (weights.unsqueeze(2) * values).sum(dim=1, keepdim=True)        # [N, 1, D]
+        centred = values - mean
+        cov = torch.matmul((weights.unsqueeze(2) * centred).transpose(1, 2), centred)
+        return 0.5 * (cov + cov.transpose(1, 2))
 
 
 class CovarianceScaling(nn.Module):

@@ -4,13 +4,14 @@ Both files run without detcal: the ONNX model with onnxruntime alone, the TorchS
 with torch alone. The graph's description (`CalibrationGraph.metadata`, JSON: classes, levels,
 inputs, outputs, conformal groups, the profile's sha256) travels with it: as the ONNX model's
 metadata property `detcal`, and as the TorchScript archive's extra file `detcal.json`.
-ONNX inputs have the declared `input_dtype` (float32 or float64) and dynamic N (0 allowed)
-and L; TorchScript takes any float dtype. Every output float is float64.
+ONNX inputs have the declared `input_dtype` (float32 or float64) and dynamic N (0 allowed),
+L and H; TorchScript takes any float dtype. Every output float is float64.
 """
 
 from __future__ import annotations
 
 import contextlib
+import inspect
 import io
 import json
 import logging
@@ -56,18 +57,25 @@ def export_profile(profile: CalibrationProfile, path: str | os.PathLike[str],
 
 
 def example_inputs(graph: CalibrationGraph, dtype: torch.dtype = torch.float64,
-                   n: int = 3, n_layers: int = 3) -> tuple[torch.Tensor, ...]:
-    """Inputs of the graph's shapes (N = `n`, L = `n_layers`) in its input order."""
+                   n: int = 3, n_layers: int = 3, n_hypotheses: int = 3
+                   ) -> tuple[torch.Tensor, ...]:
+    """Inputs of the graph's shapes (N = `n`, L = `n_layers`, H = `n_hypotheses`) in its
+    input order."""
     meta = json.loads(graph.metadata)
     width = len(meta["classes"]) + (1 if meta["score_mode"] == "softmax" else 0)
     dim = len(meta["cov_dims"])
     shapes = {"logits": (n, width), "layer_logits": (n, n_layers, width), "boxes": (n, 9),
-              "layer_boxes": (n, n_layers, 9), "ego_xy": (n, 2)}
+              "layer_boxes": (n, n_layers, 9), "ego_xy": (n, 2),
+              "hyp_boxes": (n, n_hypotheses, 9)}
     gen = torch.Generator().manual_seed(0)
-    out = [torch.randn(shapes[name], generator=gen, dtype=dtype)
-           for name in graph.input_names if name != "covariances_raw"]
-    if "covariances_raw" in graph.input_names:
-        out.append(torch.eye(dim, dtype=dtype).expand(n, dim, dim).contiguous())
+    out = []
+    for name in graph.input_names:
+        if name == "covariances_raw":
+            out.append(torch.eye(dim, dtype=dtype).expand(n, dim, dim).contiguous())
+        elif name == "hyp_scores":   # group scores are >= 0
+            out.append(torch.rand((n, n_hypotheses), generator=gen, dtype=dtype))
+        else:
+            out.append(torch.randn(shapes[name], generator=gen, dtype=dtype))
     return tuple(out)
 
 
@@ -84,9 +92,11 @@ def _onnx_bytes(graph: CalibrationGraph, dtype: torch.dtype, meta: dict[str, Any
     n = torch.export.Dim("N", min=0)
     layers = torch.export.Dim("L", min=2 if meta["modulation"] or meta["cov_source"] ==
                               "layers" else 1)
+    hyps = torch.export.Dim("H", min=1)
     axes = {"logits": {0: n}, "layer_logits": {0: n, 1: layers}, "boxes": {0: n},
-            "layer_boxes": {0: n, 1: layers}, "ego_xy": {0: n}, "covariances_raw": {0: n}}
-    params = ["logits", "boxes", "ego_xy", "covariances_raw"][:len(args)]   # forward's names
+            "layer_boxes": {0: n, 1: layers}, "ego_xy": {0: n}, "covariances_raw": {0: n},
+            "hyp_boxes": {0: n, 1: hyps}, "hyp_scores": {0: n, 1: hyps}}
+    params = list(inspect.signature(graph.forward).parameters)   # forward's names
     dynamic = {param: axes[name] for param, name in zip(params, graph.input_names, strict=True)}
     with _quiet():
         # optimize=False: onnxscript's optimizer (0.7) drops the multiplication by the

@@ -78,6 +78,13 @@ CASES = [
          dtype="float32"),
     Case("xz-dims-no-regions", "sigmoid", {**THESIS, "dims": ("x", "z"),
                                            "cov_source": "layers"}),
+    Case("hypotheses-conformal", "hypotheses",
+         {"cov_source": "hypotheses", "region_method": "conformal", "min_group": 20},
+         onnx=True),
+    Case("hypotheses-served-beside-given", "hypotheses", {}, "hypotheses"),
+    Case("yaw-hypotheses-shrinkage-float32", "hypotheses",
+         {**THESIS, "cov_method": "shrinkage", "dims": ("x", "y", "yaw"),
+          "cov_source": "hypotheses"}, onnx=True, dtype="float32"),
 ]
 
 
@@ -91,7 +98,8 @@ def build_dumps() -> dict[str, Dump]:
     dumps = {"lidar": load_dump(SHIPPED_DUMP),
              "sigmoid": synthetic_dump(n_frames=40, seed=11),
              "softmax": synthetic_dump(n_frames=40, score_mode="softmax", temperature=1.5,
-                                       seed=12)}
+                                       seed=12),
+             "hypotheses": synthetic_dump(n_frames=40, seed=13, n_hypotheses=4)}
     for sensor in ("radar1", "radar5", "camera"):
         dumps[sensor] = build_dump(build_detector(sensor), seeds)
     return dumps
@@ -114,7 +122,9 @@ def arrays(dump: Dump, dtype: str) -> dict[str, np.ndarray]:
             "layer_logits": _as(dump.det_logits, dtype),
             "boxes": _as(dump.final_boxes, dtype), "layer_boxes": _as(dump.det_boxes, dtype),
             "ego_xy": _as(dump.ego_xy(dump.det_frame), dtype),
-            "covariances_raw": _as(dump.det_cov, dtype)}
+            "covariances_raw": _as(dump.det_cov, dtype),
+            "hyp_boxes": _as(dump.det_hyp_boxes, dtype),
+            "hyp_scores": _as(dump.det_hyp_scores, dtype)}
 
 
 def graph_inputs(names: list[str], values: dict[str, np.ndarray]) -> list[np.ndarray]:
@@ -129,7 +139,9 @@ def library(profile: CalibrationProfile, values: dict[str, np.ndarray], source: 
         layer_logits=values["layer_logits"] if layer_logits else None,
         boxes=values["boxes"], ego_xy=values["ego_xy"],
         covariances=values["covariances_raw"] if source == "given" else None,
-        layer_boxes=values["layer_boxes"] if source == "layers" else None, levels=LEVELS)
+        layer_boxes=values["layer_boxes"] if source == "layers" else None,
+        hyp_boxes=values["hyp_boxes"] if source == "hypotheses" else None,
+        hyp_scores=values["hyp_scores"] if source == "hypotheses" else None, levels=LEVELS)
 
 
 def differences(out: dict[str, np.ndarray], lib: CalibratedDetections
