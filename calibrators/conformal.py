@@ -121,6 +121,7 @@ class ConformalRegions:
 
         keys, reasons = _partition(counts, min_group)
         index: dict[tuple, int] = {}
+        self.__dict__.pop("_tables", None)   # radius tables of the previous fit
         self.groups_: list[ConformalGroup] = []
         serving = np.zeros((len(known) + 1, n_bins), dtype=np.int64)  # last row: unknown
         small = [c for c in range(len(known)) if keys[c][0][0] == "pool"]
@@ -138,10 +139,22 @@ class ConformalRegions:
     def radii(self, levels: Sequence[float], classes: np.ndarray, distances: np.ndarray
               ) -> np.ndarray:
         """Radii `[N, Q]` at `levels [Q]` for detections of `classes [N]` at `distances [N]`."""
+        return self.radius_table(levels)[self.group_index(classes, distances)]
+
+    def radius_table(self, levels: Sequence[float]) -> np.ndarray:
+        """Radii `[G, Q]` of every group (rows of `groups_`) at `levels [Q]`; `radii` is its
+        rows at `group_index`. Kept per level set (a server asks for the same few)."""
         check_fitted(self, "serving_")
         q = check_levels(levels)
-        table = np.stack([g.radius(q) for g in self.groups_])  # [G, Q]
-        return table[self._group_of(classes, distances)]
+        key = q.tobytes()
+        tables = self.__dict__.setdefault("_tables", {})   # emptied by `fit`
+        table = tables.get(key)
+        if table is None:
+            table = np.stack([g.radius(q) for g in self.groups_])
+            table.setflags(write=False)
+            if len(tables) < 64:
+                tables[key] = table
+        return table
 
     def radius(self, level: float, classes: np.ndarray, distances: np.ndarray) -> np.ndarray:
         """Radii `[N]` at one `level` in (0, 1)."""

@@ -308,9 +308,9 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
                 {float(q): np.full(n, gaussian_radius(q)) for q in levels}, method, None)
     # `levels` is the ellipse confidence plus up to MAX_LEVELS requested levels: radii() takes
     # at most MAX_LEVELS at once
-    radii = np.concatenate([conformal.radii(levels[i:i + MAX_LEVELS], labels, distances)
-                            for i in range(0, len(levels), MAX_LEVELS)], axis=1)
     index = conformal.group_index(labels, distances)
+    radii = np.concatenate([conformal.radius_table(levels[i:i + MAX_LEVELS])
+                            for i in range(0, len(levels), MAX_LEVELS)], axis=1)[index]
     names = {int(g): _group_name(profile, conformal, conformal.groups_[g])
              for g in np.unique(index)}
     return ({float(q): radius_ellipse(block, radii[:, j]) for j, q in enumerate(levels)},
