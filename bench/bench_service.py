@@ -2,11 +2,17 @@
 Arrow stream, against a bare FastAPI echo endpoint receiving the same JSON, all real uvicorn
 processes on loopback. The JSON and Arrow answers are checked bit-equal first.
 
-    .venv/bin/python -m bench.bench_service [--requests 300] [--concurrency 4]
+    .venv/bin/python -m bench.bench_service [--requests 300] [--clients 2] [--rounds 5]
 
 Server time is read from each response's `Server-Timing` header (the same middleware in
-both apps); client latency includes transfer. Writes the `service` section of
-docs/benchmarks.md.
+both apps); client latency includes transfer (httpx, sequential). Throughput (detections/s)
+is what `--clients` load-generator processes (stdlib `http.client`, one keep-alive
+connection each: a few hundred microseconds of client CPU per request, where a threaded
+httpx client in one process spent more than the Arrow server did and was the bottleneck)
+get through; the formats alternate over `--rounds` rounds, so a slow stretch of this shared
+machine hits both, and the ratio is the median of the rounds' ratios. Server CPU per
+request (`/proc`, the server process) is the machine-independent view of the same work.
+Writes the `service` section of docs/benchmarks.md.
 """
 
 from __future__ import annotations
@@ -15,12 +21,13 @@ import argparse
 import json
 import os
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
 import time
-from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from urllib.parse import urlsplit
 
 import httpx
 import numpy as np
@@ -120,8 +127,9 @@ def _bit_equal(client: httpx.Client, url: str, body: bytes, arrow: bytes) -> boo
                for k in json_cols)
 
 
-def _measure(client: httpx.Client, url: str, body: bytes, n: int, concurrency: int,
+def _latency(client: httpx.Client, url: str, body: bytes, n: int,
              media: str = "application/json") -> dict:
+    """Sequential requests: server time (Server-Timing) and client latency, p50 and p95."""
     headers = {"content-type": media}
     for _ in range(20):                                   # warm-up
         client.post(url, content=body, headers=headers).raise_for_status()
@@ -132,24 +140,77 @@ def _measure(client: httpx.Client, url: str, body: bytes, n: int, concurrency: i
         latency.append((time.perf_counter() - t0) * 1000.0)
         r.raise_for_status()
         server.append(float(r.headers["server-timing"].split("dur=")[1]))
-
-    def one(_: int) -> None:
-        client.post(url, content=body, headers=headers).raise_for_status()
-
-    t0 = time.perf_counter()
-    with ThreadPoolExecutor(concurrency) as pool:
-        list(pool.map(one, range(n)))
-    rps = n / (time.perf_counter() - t0)
     return {"server_p50": float(np.median(server)), "server_p95": float(np.percentile(server, 95)),
             "latency_p50": float(np.median(latency)),
-            "latency_p95": float(np.percentile(latency, 95)), "rps": rps}
+            "latency_p95": float(np.percentile(latency, 95))}
+
+
+def _client(url: str, body: bytes, media: str, n: int) -> None:
+    """One load-generator process: `n` POSTs on one keep-alive connection."""
+    import http.client
+
+    parts = urlsplit(url)
+    conn = http.client.HTTPConnection(parts.hostname, parts.port)
+    for _ in range(n):
+        conn.request("POST", parts.path, body=body, headers={"content-type": media})
+        response = conn.getresponse()
+        response.read()
+        if response.status != 200:
+            raise RuntimeError(f"{url}: {response.status}")
+
+
+def _cpu_seconds(pid: int) -> float:
+    """User + system CPU time so far of process `pid` and its live descendants (the
+    calibrate worker processes that large bodies go to)."""
+    total = 0.0
+    try:
+        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        total = (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+        for task in Path(f"/proc/{pid}/task").iterdir():
+            for child in (task / "children").read_text().split():
+                total += _cpu_seconds(int(child))
+    except (FileNotFoundError, ProcessLookupError):
+        pass
+    return total
+
+
+def _throughput(url: str, body: bytes, media: str, n: int, clients: int, pid: int
+                ) -> tuple[float, float]:
+    """(requests/s, server CPU ms per request) of `n` requests from `clients` processes."""
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    procs = [ctx.Process(target=_client, args=(url, body, media, n // clients))
+             for _ in range(clients)]
+    cpu, t0 = _cpu_seconds(pid), time.perf_counter()
+    for p in procs:
+        p.start()
+    for p in procs:
+        p.join()
+        if p.exitcode != 0:
+            raise RuntimeError(f"a load-generator process failed ({p.exitcode})")
+    total = (n // clients) * clients
+    return total / (time.perf_counter() - t0), (_cpu_seconds(pid) - cpu) / total * 1000.0
+
+
+def _rounds(variants: dict[str, tuple[str, bytes, str, int, int]], clients: int, rounds: int
+            ) -> dict[str, list[tuple[float, float]]]:
+    """Every variant `name: (url, body, media, requests, server pid)` once per round, in
+    turn; per variant the rounds' (requests/s, server CPU ms per request)."""
+    out: dict[str, list[tuple[float, float]]] = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, (url, body, media, n, pid) in variants.items():
+            out[name].append(_throughput(url, body, media, n, clients, pid))
+    return out
 
 
 def main(argv: list[str] | None = None) -> int:
     """Run both servers, measure, print the ratio and record it."""
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--requests", type=int, default=300)
-    ap.add_argument("--concurrency", type=int, default=4)
+    ap.add_argument("--requests", type=int, default=300,
+                    help="requests per measurement (one frame per request)")
+    ap.add_argument("--clients", type=int, default=2, help="load-generator processes")
+    ap.add_argument("--rounds", type=int, default=5, help="alternating throughput rounds")
     ap.add_argument("--batch-frames", type=int, default=10,
                     help="frames per request of the second JSON / Arrow comparison")
     args = ap.parse_args(argv)
@@ -162,6 +223,7 @@ def main(argv: list[str] | None = None) -> int:
     batched = {"frames": [{**payload["frames"][0], "frame_id": f"bench-{i}"}
                           for i in range(args.batch_frames)]}
     body_k, arrow_k = json.dumps(batched).encode(), _arrow(batched)
+    n_k = max(20, args.requests // args.batch_frames)
     procs = []
     with tempfile.TemporaryDirectory() as tmp:
         p_app, p_echo = _port(), _port()
@@ -173,50 +235,75 @@ def main(argv: list[str] | None = None) -> int:
                  "--log-level", "warning"], cwd=ROOT, stdout=subprocess.DEVNULL))
             _wait(f"http://127.0.0.1:{p_app}/healthz", procs[0])
             _wait(f"http://127.0.0.1:{p_echo}/docs", procs[1])
+            echo_url = f"http://127.0.0.1:{p_echo}/echo"
+            url = f"http://127.0.0.1:{p_app}/v1/calibrate"
             with httpx.Client(timeout=30.0) as client:
-                echo = _measure(client, f"http://127.0.0.1:{p_echo}/echo", body,
-                                args.requests, args.concurrency)
-                url = f"http://127.0.0.1:{p_app}/v1/calibrate"
                 same = _bit_equal(client, url, body, arrow)
-                cal = _measure(client, url, body, args.requests, args.concurrency)
-                fast = _measure(client, url, arrow, args.requests, args.concurrency, ARROW_STREAM)
-                n_k = max(20, args.requests // args.batch_frames)
-                cal_k = _measure(client, url, body_k, n_k, args.concurrency)
-                fast_k = _measure(client, url, arrow_k, n_k, args.concurrency, ARROW_STREAM)
+                lat = {"echo": _latency(client, echo_url, body, args.requests),
+                       "json": _latency(client, url, body, args.requests),
+                       "arrow": _latency(client, url, arrow, args.requests, ARROW_STREAM),
+                       "json_k": _latency(client, url, body_k, n_k),
+                       "arrow_k": _latency(client, url, arrow_k, n_k, ARROW_STREAM)}
+            json_media, app_pid, echo_pid = "application/json", procs[0].pid, procs[1].pid
+            tp = _rounds({"echo": (echo_url, body, json_media, args.requests, echo_pid),
+                          "json": (url, body, json_media, args.requests, app_pid),
+                          "arrow": (url, arrow, ARROW_STREAM, args.requests, app_pid),
+                          "json_k": (url, body_k, json_media, n_k, app_pid),
+                          "arrow_k": (url, arrow_k, ARROW_STREAM, n_k, app_pid)},
+                         args.clients, args.rounds)
         finally:
             for p in procs:
                 p.terminate()
                 p.wait(10)
-    ratio = cal["server_p50"] / echo["server_p50"]
-    lat_ratio = cal["latency_p50"] / echo["latency_p50"]
+    return report_service(args, payload, body, arrow, body_k, arrow_k, same, lat, tp)
+
+
+def report_service(args: argparse.Namespace, payload: dict, body: bytes, arrow: bytes,
+                   body_k: bytes, arrow_k: bytes, same: bool, lat: dict,
+                   tp: dict[str, list[tuple[float, float]]]) -> int:
+    """The markdown section of the measurements, printed and written."""
     n_det = len(payload["frames"][0]["detections"])
+
+    def rps(name: str) -> float:
+        return statistics.median(r for r, _ in tp[name])
+
+    def cpu(name: str) -> float:
+        return statistics.median(c for _, c in tp[name])
+
+    def ratio(a: str, b: str) -> float:
+        """Median over the rounds of a's throughput over b's."""
+        return statistics.median(x[0] / y[0] for x, y in zip(tp[a], tp[b], strict=True))
+
+    rows = (("/v1/calibrate JSON", 1, "json"), ("/v1/calibrate Arrow", 1, "arrow"),
+            ("echo (reference)", 1, "echo"), ("/v1/calibrate JSON", args.batch_frames, "json_k"),
+            ("/v1/calibrate Arrow", args.batch_frames, "arrow_k"))
     table = (
         f"POST /v1/calibrate, frames of {n_det} detections (logits [10], box [9], covariance "
         f"2x2), one per request as JSON (request {len(body) / 1024:.0f} KiB) and as an Arrow "
-        f"stream ({len(arrow) / 1024:.0f} KiB), {args.requests} sequential requests, then "
-        f"{args.requests} with {args.concurrency} concurrent clients; then {args.batch_frames} "
-        f"frames per request (JSON {len(body_k) / 1024:.0f} KiB, Arrow "
-        f"{len(arrow_k) / 1024:.0f} KiB) the same way; reference: a bare FastAPI "
-        f"endpoint that parses the same JSON and echoes it. All are uvicorn processes on "
-        f"loopback, one worker each; the clients (httpx) run on the same 2 cores.\n\n"
+        f"stream ({len(arrow) / 1024:.0f} KiB), and {args.batch_frames} frames per request "
+        f"(JSON {len(body_k) / 1024:.0f} KiB, Arrow {len(arrow_k) / 1024:.0f} KiB); reference: "
+        f"a bare FastAPI endpoint that parses the same JSON and echoes it. All are uvicorn "
+        f"processes on loopback, one worker each, on the same 2 cores as the clients. Latency: "
+        f"{args.requests} sequential requests (httpx); throughput: {args.clients} "
+        f"load-generator processes (`http.client`, keep-alive), {args.rounds} rounds with the "
+        f"formats alternating (medians; ratios are medians of the per-round ratios).\n\n"
         "| endpoint | frames / request | server p50 ms | server p95 ms | latency p50 ms | "
-        "latency p95 ms | throughput req/s | detections/s |\n|---|---|---|---|---|---|---|---|\n"
-        + "".join(f"| {name} | {k} | {m['server_p50']:.2f} | {m['server_p95']:.2f} | "
-                  f"{m['latency_p50']:.2f} | {m['latency_p95']:.2f} | {m['rps']:.1f} | "
-                  f"{m['rps'] * n_det * k:,.0f} |\n"
-                  for name, k, m in (("/v1/calibrate JSON", 1, cal),
-                                     ("/v1/calibrate Arrow", 1, fast),
-                                     ("echo (reference)", 1, echo),
-                                     ("/v1/calibrate JSON", args.batch_frames, cal_k),
-                                     ("/v1/calibrate Arrow", args.batch_frames, fast_k)))
-        + f"\n**Ratio JSON calibrate / echo: {ratio:.2f}× server time (p50)** (target ≤ 1.0×), "
-          f"{lat_ratio:.2f}× client latency (p50). **Arrow / JSON, detections/s: "
-          f"{fast['rps'] / cal['rps']:.1f}× with one frame per request, "
-          f"{fast_k['rps'] / cal_k['rps']:.1f}× with {args.batch_frames}** (target ≥ 5×); server "
-          f"time {cal['server_p50'] / fast['server_p50']:.1f}× / "
-          f"{cal_k['server_p50'] / fast_k['server_p50']:.1f}× less. With one frame the fixed "
-          f"cost of an HTTP request (uvicorn, FastAPI, the client) dominates the Arrow path. "
-          f"Calibrated values of the two formats bit-equal: {'yes' if same else 'NO'}.\n")
+        "latency p95 ms | server CPU ms / request | throughput req/s | detections/s |\n"
+        "|---|---|---|---|---|---|---|---|---|\n"
+        + "".join(f"| {name} | {k} | {lat[key]['server_p50']:.2f} | "
+                  f"{lat[key]['server_p95']:.2f} | {lat[key]['latency_p50']:.2f} | "
+                  f"{lat[key]['latency_p95']:.2f} | {cpu(key):.2f} | {rps(key):.1f} | "
+                  f"{rps(key) * n_det * k:,.0f} |\n" for name, k, key in rows)
+        + f"\n**Ratio JSON calibrate / echo: "
+          f"{lat['json']['server_p50'] / lat['echo']['server_p50']:.2f}× server time (p50)** "
+          f"(target ≤ 1.0×), {lat['json']['latency_p50'] / lat['echo']['latency_p50']:.2f}× "
+          f"client latency (p50). **Arrow / JSON, detections/s: {ratio('arrow', 'json'):.1f}× "
+          f"with one frame per request (rounds: "
+          + ", ".join(f"{x[0] / y[0]:.1f}" for x, y in zip(tp["arrow"], tp["json"], strict=True))
+          + f"), {ratio('arrow_k', 'json_k'):.1f}× with {args.batch_frames}** (target ≥ 5×); "
+          f"server CPU per detection {cpu('json') / cpu('arrow'):.1f}× / "
+          f"{cpu('json_k') / cpu('arrow_k'):.1f}× less. Calibrated values of the two formats "
+          f"bit-equal: {'yes' if same else 'NO'}.\n")
     from bench._report import report
 
     return report("service", table)
