@@ -54,16 +54,27 @@ def radius_ellipse(cov: np.ndarray, radius: np.ndarray) -> Ellipse:
     r = np.asarray(radius, dtype=np.float64)
     if r.ndim != 1:
         raise ValueError(f"radius must have 1 dimension, got shape {r.shape}")
+    return radius_ellipses(cov, r[:, None])[0]
+
+
+def radius_ellipses(cov: np.ndarray, radii: np.ndarray) -> list[Ellipse]:
+    """`radius_ellipse` of `cov [N, 2, 2]` at each column of `radii [N, Q]`: Q ellipses from
+    one eigen-decomposition."""
+    r = np.asarray(radii, dtype=np.float64)
+    if r.ndim != 2:
+        raise ValueError(f"radii must have 2 dimensions [N, Q], got shape {r.shape}")
     if not (r >= 0).all():   # NaN fails too
         raise ValueError(f"radius must be >= 0 (inf: unbounded), got {float(r[~(r >= 0)][0])}")
     single, (high, low, angle) = _eigen(cov)
     if single or r.shape[0] != high.shape[0]:
         raise ValueError(f"radius must have one entry per covariance [N, 2, 2], got "
                          f"{r.shape[0]} for {high.shape[0]}")
+    r = r.T                                  # [Q, N]: each level's axes contiguous
     unbounded = np.isinf(r)
     finite = np.where(unbounded, 0.0, r)
-    return Ellipse(np.where(unbounded, np.inf, finite * np.sqrt(high)),
-                   np.where(unbounded, np.inf, finite * np.sqrt(low)), angle)
+    major = np.where(unbounded, np.inf, finite * np.sqrt(high))
+    minor = np.where(unbounded, np.inf, finite * np.sqrt(low))
+    return [Ellipse(major[j], minor[j], angle) for j in range(r.shape[0])]
 
 
 def _eigen(cov: np.ndarray) -> tuple[bool, tuple[np.ndarray, np.ndarray, np.ndarray]]:

@@ -38,7 +38,7 @@ from calibrators.checks import (
 )
 from calibrators.covariance import layer_spread
 from calibrators.depth import add_depth_term
-from calibrators.ellipse import Ellipse, ellipse, radius_ellipse
+from calibrators.ellipse import Ellipse, ellipse, radius_ellipses
 from calibrators.exceptions import FieldError
 from calibrators.hypotheses import check_hypotheses, hypotheses_covariance
 from calibrators.levels import MAX_LEVELS, check_levels, gaussian_radius
@@ -143,6 +143,13 @@ def _check_finite(res: CalibratedDetections, given_cov: bool,
               *((a, confidence_radii) for a in res.ellipses or ()),
               *((a, res.region_radii.get(q)) for q, region in res.regions.items()
                 for a in region)]
+    # Quick pass: a sum is finite only if every term is (a huge finite sum that overflows
+    # just takes the row-by-row pass below, which also places the fault).
+    unbounded = {id(r): bool(np.isinf(r).any()) for _, r in served if r is not None}
+    if not any(unbounded.values()):
+        with np.errstate(over="ignore", invalid="ignore"):
+            if np.isfinite(sum(float(np.add.reduce(np.ravel(a))) for a, _ in served)):
+                return
     bad = np.zeros(n, dtype=bool)
     for arr, radii in served:
         ok = np.isfinite(np.asarray(arr, dtype=np.float64).reshape(n, -1)).all(axis=1)
@@ -313,7 +320,7 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
                             for i in range(0, len(levels), MAX_LEVELS)], axis=1)[index]
     names = {int(g): _group_name(profile, conformal, conformal.groups_[g])
              for g in np.unique(index)}
-    return ({float(q): radius_ellipse(block, radii[:, j]) for j, q in enumerate(levels)},
+    return (dict(zip(map(float, levels), radius_ellipses(block, radii), strict=True)),
             {float(q): radii[:, j] for j, q in enumerate(levels)}, method,
             [names[g] for g in index.tolist()])
 

@@ -161,7 +161,7 @@ def calibrated_batch(request: BatchRequest, res: CalibratedDetections, classes: 
     the schema key `detcal`."""
     n = len(res)
     columns: dict[str, pa.Array] = dict(request.echo)
-    columns["label"] = pa.array(np.asarray(classes, dtype=object)[res.labels], pa.string())
+    columns["label"] = pa.array(list(classes), pa.string()).take(pa.array(res.labels))
     columns["label_index"] = pa.array(res.labels.astype(np.int32))
     columns["score"] = pa.array(res.scores)
     columns["score_raw"] = pa.array(res.scores_raw)
