@@ -14,9 +14,10 @@ options)` gives, T and every k to 1e-6 relative, holding one part of the dataset
    `TemperatureScaler` and `DepthScaler` bin in memory, so T and k come from the same Brent
    searches;
 4. softmax temperature, which has no finite statistic: one pass over the parts' logits per
-   Brent evaluation (the first pass returned every fit row's target column, 2 bytes a
-   row, so these passes neither match nor read boxes), after the same seeded subsample
-   (gathered from the parts) has bracketed T;
+   evaluation of Brent's root finder on the NLL's derivative (the parts' sums add up; the
+   first pass returned every fit row's target column, 2 bytes a row, so these passes
+   neither match nor read boxes), started where the same seeded subsample (gathered from
+   the parts) puts T;
 5. the profile is assembled as `fit_profile` assembles it; its report summarises a seeded
    sample of at most `report_detections` detections of whole fit (and held-out) frames,
    all of them when they fit (the report then equals the in-memory one), and says so.
@@ -61,10 +62,10 @@ from calibrators.temperature import (
     _SIGMOID_BINS,
     _SUBSAMPLE_MIN,
     TemperatureScaler,
-    subsample_bracket,
     subsample_rows,
+    subsample_start,
 )
-from calibrators.temperature_nll import SigmoidBins, sigmoid_nll, softmax_nll
+from calibrators.temperature_nll import SigmoidBins, sigmoid_nll, softmax_mean
 from calibrators.vocab import COV_SOURCES
 
 #: Detections of whole frames the report summarises at most (per part: fit, held out).
@@ -195,7 +196,7 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
     if ds.score_mode == "sigmoid":
         if n > _SIGMOID_BINS:
             bins: SigmoidBins = reduce(add, (f.sigmoid for f in firsts))
-            scaler.fit_objective(bins.objective(), n, width, bracket=bins.bracket)
+            scaler.fit_bins(bins, width)
         else:
             s, y = (np.concatenate([f.sigmoid[i] for f in firsts]) for i in (0, 1))
             scaler.fit_objective(sigmoid_nll(s, y), n, width)
@@ -203,23 +204,20 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
 
     labels = [f.softmax_labels for f in firsts]
 
-    def objective(log_t: float) -> float:
+    def value_grad(log_t: float) -> tuple[float, float]:
         inv_t = float(np.exp(-log_t))
         sums = mapper.map(softmax_sums, chunks, labels, inv_t=inv_t)
-        return (sum(s[0] for s in sums) - sum(s[1] for s in sums) * inv_t) / n
+        return softmax_mean(n, inv_t, *(sum(s[i] for s in sums) for i in range(3)))
 
-    bracket = None
+    start = None
     if n >= _SUBSAMPLE_MIN:
         rows = subsample_rows(n)
         local = [rows[(rows >= c.offset) & (rows < c.offset + f.n_fit_detections)] - c.offset
                  for c, f in zip(chunks, firsts, strict=True)]
         got = mapper.map(softmax_rows, chunks, local, labels)
-        sub = softmax_nll(np.concatenate([g[0] for g in got]), np.concatenate([g[1] for g in got]))
-
-        def bracket(bounds: tuple[float, float]) -> tuple[float, float]:
-            return subsample_bracket(sub, len(rows), bounds)
-
-    scaler.fit_objective(objective, n, width, bracket=bracket)
+        start = subsample_start(np.concatenate([g[0] for g in got]),
+                                np.concatenate([g[1] for g in got]), scaler.log_bounds())
+    scaler.fit_gradient(value_grad, n, width, start)
     return float(scaler.temperature_)
 
 

@@ -28,7 +28,7 @@ from calibrators.matched import (
     ts_logits,
 )
 from calibrators.matching import MatchResult
-from calibrators.temperature_nll import SigmoidBins, row_max, softmax_log_sum, softmax_terms
+from calibrators.temperature_nll import SigmoidBins, SoftmaxSums, row_max
 
 
 @dataclass(frozen=True)
@@ -149,13 +149,16 @@ def softmax_rows(chunk: Chunk, rows: np.ndarray, labels: np.ndarray
     return _softmax_logits(chunk)[rows], labels[rows].astype(np.int64)
 
 
-def softmax_sums(chunk: Chunk, labels: np.ndarray, inv_t: float) -> tuple[float, float]:
-    """`(Σ log Σ exp(shifted/T), Σ shifted target)` over the part's fit rows at `1/T`."""
-    z = _softmax_logits(chunk)
+def softmax_sums(chunk: Chunk, labels: np.ndarray, inv_t: float
+                 ) -> tuple[float, float, float]:
+    """`(Σ logsumexp(z/T), Σ Σ_j p_j z_j, Σ z_y)` over the part's fit rows at `1/T`
+    (`SoftmaxSums`; additive over parts)."""
+    z = np.ascontiguousarray(_softmax_logits(chunk), dtype=np.float64)
     if not len(z):
-        return 0.0, 0.0
-    shifted, target = softmax_terms(z, labels.astype(np.int64))
-    return softmax_log_sum(shifted, inv_t), target
+        return 0.0, 0.0, 0.0
+    sums = SoftmaxSums(z, labels.astype(np.int64))
+    log_sum, expected = sums.at(inv_t)
+    return log_sum, expected, sums.target
 
 
 def frames_of(chunk: Chunk, keep: np.ndarray) -> Dump | None:

@@ -2,7 +2,9 @@
 softmax), and the sigmoid NLL from binned sufficient statistics (`SigmoidBins`); used by
 `calibrators.temperature` (in memory) and `calibrators.stream` (per chunk, then merged).
 
-An objective is a function `log T -> mean NLL`. Float64 arithmetic throughout.
+An objective is a function `log T -> mean NLL`; a `ValueGrad` gives `(mean NLL, d mean NLL /
+d log T)` (softmax: `SoftmaxSums`, sigmoid bins: `SigmoidBins.value_grad`). Float64
+arithmetic throughout.
 """
 
 from __future__ import annotations
@@ -11,16 +13,15 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
+
+from calibrators.checks import check_finite
 
 Objective = Callable[[float], float]
+ValueGrad = Callable[[float], tuple[float, float]]
 
 SIGMOID_BINS = 1 << 16  # bins of the predicted logit (sigmoid, more detections than this)
-_COARSEN = 64  # the bracketing search runs on bins this many times as wide
-_COARSE_XTOL = 1e-3  # Brent tolerance on log T of the bracketing search
-_SIGMOID_BRACKET = 0.05  # width in log T of the fine search's first bracket
-_GOLDEN = (3.0 - 5.0**0.5) / 2.0  # where bounded Brent places its first point in a bracket
 _CHUNK_FLOATS = 1 << 16  # 512 KiB of float64 per work buffer: stays in the CPU cache
+_EXP_LIMIT = 600.0  # softmax: a block with |z| / T beyond this is shifted by its rows' max
 
 
 def _dot(a: np.ndarray, b: np.ndarray) -> float:
@@ -108,9 +109,10 @@ class SigmoidBins:
 
     @staticmethod
     def grid(low: float, high: float, n_bins: int = SIGMOID_BINS) -> tuple[float, float]:
-        """(low, bin width) of `n_bins` equal bins over `[low, high]` (width 1 if empty)."""
+        """(low, bin width) of `n_bins` equal bins over `[low, high]`, a hair (1e-6) wider
+        than the span so that `high` falls inside the last bin (width 1 if empty)."""
         span = float(high) - float(low)
-        return float(low), (span / n_bins if span > 0 else 1.0)
+        return float(low), (span * (1.0 + 1e-6) / n_bins if span > 0 else 1.0)
 
     @classmethod
     def from_logits(cls, s: np.ndarray, y: np.ndarray, n_bins: int = SIGMOID_BINS,
@@ -119,19 +121,29 @@ class SigmoidBins:
         (`(low, high)`, containing every `s`; default `(min s, max s)`)."""
         low, high = (float(s.min()), float(s.max())) if span is None else span
         low, width = cls.grid(low, high, n_bins)
-        pos = np.subtract(s, low)
-        pos *= 1.0 / width   # in [0, n_bins]: integer part = bin, the rest = the offset
-        idx = pos.astype(np.intp)
-        np.clip(idx, 0, n_bins - 1, out=idx)
-        pos -= idx
-        count = np.bincount(idx, minlength=n_bins).astype(np.float64)
-        offset = np.bincount(idx, weights=pos, minlength=n_bins)
-        power = pos * pos
-        offset_sq = np.bincount(idx, weights=power, minlength=n_bins)
-        power *= pos
-        return cls(n=len(s), sum_ys=_dot(y.astype(np.float64), s), low=low, width=width,
-                   count=count, offset=offset, offset_sq=offset_sq,
-                   offset_cu=np.bincount(idx, weights=power, minlength=n_bins))
+        sums = [np.zeros(n_bins) for _ in range(4)]
+        chunks = _chunks(len(s), 1)
+        rows = chunks[0].stop if chunks else 0
+        pos, whole, power, idx = np.empty(rows), np.empty(rows), np.empty(rows), np.empty(
+            rows, dtype=np.intp)
+        for sl in chunks:   # cache-sized blocks: no large temporary arrays
+            k = sl.stop - sl.start
+            p, w, q, i = pos[:k], whole[:k], power[:k], idx[:k]
+            np.subtract(s[sl], low, out=p)
+            p *= 1.0 / width   # in [0, n_bins): integer part = bin, the rest = the offset
+            np.floor(p, out=w)
+            np.copyto(i, w, casting="unsafe")
+            if span is not None:   # a caller's span: keep stray rounding inside the grid
+                np.clip(i, 0, n_bins - 1, out=i)
+                np.copyto(w, i)
+            p -= w
+            np.add.at(sums[0], i, 1.0)   # ufunc.at: no range pass, unlike np.bincount
+            np.add.at(sums[1], i, p)
+            np.multiply(p, p, out=q)
+            np.add.at(sums[2], i, q)
+            q *= p
+            np.add.at(sums[3], i, q)
+        return cls(len(s), _dot(y.astype(np.float64), s), low, width, *sums)
 
     def error_bound(self, log_t: float) -> float:
         """Bound on the absolute error of `objective()(log_t)`: `(h/T)^4 / 192`."""
@@ -158,87 +170,146 @@ class SigmoidBins:
             merged((m * j + s1) / factor), merged((m * j * j + 2.0 * j * s1 + s2) / factor**2),
             merged((m * j**3 + 3.0 * j * j * s1 + 3.0 * j * s2 + s3) / factor**3))
 
-    def objective(self) -> Objective:
-        """The mean NLL vs `log T` from the bins (class docstring), O(used bins) per call.
+    def gradient_bound(self, log_t: float) -> float:
+        """Bound on the absolute error of the derivative in log T of `value_grad()`:
+        `(h/T)^4 / 48` (the fourth derivative of `s·σ(s/T)` in `s` is `T^-3·(x f5 + 4 f4)`,
+        at most `T^-3 / 2` in magnitude)."""
+        return float((self.width * np.exp(-log_t)) ** 4 / 48.0)
 
-        With `e = exp(-|x|)`: `softplus(x) = max(x, 0) + log1p(e)`, `f2 = σ(1 - σ) =
-        e / (1 + e)²` and `f3 = σ(1 - σ)(1 - 2σ) = -sign(x)·f2·(1 - e) / (1 + e)`; the
-        `max(x, 0)` part is linear in 1/T and summed once."""
+    def objective(self) -> Objective:
+        """The mean NLL vs `log T` from the bins (`value_grad`)."""
+        value_grad = self.value_grad()
+        return lambda log_t: value_grad(log_t)[0]
+
+    def value_grad(self) -> ValueGrad:
+        """`log T -> (mean NLL, d mean NLL / d log T)` from the bins (class docstring),
+        O(used bins) per call. In `β = 1/T`, a bin of centre `c` contributes
+        `m·f(βc) + β²M2/2·f2 + β³M3/6·f3` and, to the derivative in β, `m·c·σ(βc) + β·M2·f2
+        + β²/2·(M2·c + M3)·f3 + β³/6·M3·c·f4`; the derivative in log T is `-β` times that.
+
+        With `e = exp(-β|c|)`: `softplus(x) = max(x, 0) + log1p(e)`, `c·σ(βc) = max(c, 0) -
+        |c|·e / (1 + e)`, `f2 = σ(1 - σ) = e / (1 + e)²`, `f3 = -sign(c)·f2·(1 - e) / (1 + e)`,
+        `f4 = f2·(1 - 6·f2)`; the `max(c, 0)` parts are summed once."""
         used = self.count > 0
         m = self.count[used]
         mean_offset = self.offset[used] / m
         centre = self.low + (np.flatnonzero(used) + mean_offset) * self.width
         s2 = self.offset_sq[used]
-        half_m2 = 0.5 * np.maximum(s2 - m * mean_offset**2, 0.0) * self.width**2 / self.n
-        m3 = self.offset_cu[used] - 3.0 * mean_offset * s2 + 2.0 * m * mean_offset**3
-        sixth_m3 = -np.sign(centre) * m3 * self.width**3 / (6.0 * self.n)
+        m2 = np.maximum(s2 - m * mean_offset**2, 0.0) * (self.width**2 / self.n)
+        m3 = (self.offset_cu[used] - 3.0 * mean_offset * s2 + 2.0 * m * mean_offset**3) * (
+            self.width**3 / self.n)
         weight = m / self.n
-        positive = _dot(weight, np.maximum(centre, 0.0))
-        neg_abs = -np.abs(centre)
-        mean_ys = self.sum_ys / self.n
+        sign, neg_abs = np.sign(centre), -np.abs(centre)
+        linear = _dot(weight, np.maximum(centre, 0.0)) - self.sum_ys / self.n
+        weight_abs = -weight * neg_abs
+        skew3 = -sign * m3                    # · |f3| (signs folded in)
+        mixed3 = -sign * (m2 * centre + m3)   # · |f3|
+        skew4 = m3 * centre                   # · f4
 
-        def nll(log_t: float) -> float:
-            inv_t = float(np.exp(-log_t))
-            e = np.exp(neg_abs * inv_t)
-            tail = _dot(weight, np.log1p(e))
-            e1 = 1.0 + e
-            f2 = e / (e1 * e1)
-            curvature = _dot(half_m2, f2) * inv_t**2
-            skew = _dot(sixth_m3, f2 * (1.0 - e) / e1) * inv_t**3
-            return (positive - mean_ys) * inv_t + tail + curvature + skew
+        def value_grad(log_t: float) -> tuple[float, float]:
+            beta = float(np.exp(-log_t))
+            e = np.exp(neg_abs * beta)
+            r = 1.0 / (1.0 + e)
+            q = e * r            # σ(-β|c|)
+            f2 = q * r
+            f3 = (1.0 - e) * r
+            f3 *= f2
+            f4 = 1.0 - 6.0 * f2
+            f4 *= f2
+            half_b2, sixth_b3 = 0.5 * beta**2, beta**3 / 6.0
+            curvature = _dot(m2, f2)
+            value = (linear * beta + _dot(weight, np.log1p(e)) + half_b2 * curvature
+                     + sixth_b3 * _dot(skew3, f3))
+            d_beta = (linear - _dot(weight_abs, q) + beta * curvature
+                      + half_b2 * _dot(mixed3, f3) + sixth_b3 * _dot(skew4, f4))
+            return value, -beta * d_beta
 
-        return nll
-
-    def bracket(self, bounds: tuple[float, float]) -> tuple[float, float]:
-        """A `_SIGMOID_BRACKET` bracket on log T (within `bounds`) around the optimum of the
-        coarsened bins (a few microseconds per evaluation), placed where bounded Brent takes
-        its first point. A miss only costs evaluations: the search widens it."""
-        factor = _COARSEN if len(self.count) % _COARSEN == 0 else 1
-        coarse = self.coarsen(factor).objective()
-        result = minimize_scalar(coarse, bounds=bounds, method="bounded",
-                                 options={"xatol": _COARSE_XTOL})
-        centre = float(result.x)
-        return (max(bounds[0], centre - _GOLDEN * _SIGMOID_BRACKET),
-                min(bounds[1], centre + (1.0 - _GOLDEN) * _SIGMOID_BRACKET))
-
-
-def softmax_terms(z: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, float]:
-    """`(z - row max [N, C'], Σ of the shifted target logits)` of `z [N, C']`, `y [N]`."""
-    shifted = z - row_max(z)[:, None]
-    return shifted, float(shifted[np.arange(len(z)), y].sum())
+        return value_grad
 
 
-def softmax_log_sum(shifted: np.ndarray, inv_t: float, buf: np.ndarray | None = None,
-                    row_sums: np.ndarray | None = None) -> float:
-    """`Σ_rows log Σ_cols exp(shifted / T)` of `shifted [N, C']` (rows shifted to max 0),
-    exponentiating cache-sized blocks in one buffer and summing rows by a matrix-vector
-    product."""
-    n, width = shifted.shape
-    chunks = _chunks(n, width)
-    buf = np.empty((chunks[0].stop, width)) if buf is None else buf
-    row_sums = np.empty(n) if row_sums is None else row_sums
-    ones = np.ones(width)
-    for sl in chunks:
-        block = buf[:sl.stop - sl.start]
-        np.multiply(shifted[sl], inv_t, out=block)
-        np.exp(block, out=block)
-        np.matmul(block, ones, out=row_sums[sl])
-    return float(np.log(row_sums).sum())
+class SoftmaxSums:
+    """The sums of the softmax NLL of logits `z [N, C']` (C-contiguous float64) with target
+    columns `y [N]`, at any `1/T` (`at`); sums over disjoint rows add up, so a dataset can
+    be summed part by part.
+
+    One pass over `z` in cache-sized blocks per call: `exp(z / T)` unshifted where the
+    block's largest `|z| / T` is at most `_EXP_LIMIT` (no overflow, no subnormal), else with
+    each row shifted by its maximum (`logsumexp = m/T + log Σ exp((z - m)/T)`, arguments
+    clamped at -700: a term below `e^-700` of the row's largest changes nothing). Row sums by
+    a matrix-vector product. The first call also takes `Σ z_y` and each block's largest
+    `|z|` (non-finite logits make it, and so every sum, non-finite).
+    """
+
+    def __init__(self, z: np.ndarray, y: np.ndarray) -> None:
+        self.z, self.y = z, y
+        self.chunks = _chunks(z.shape[0], z.shape[1])
+        self.target = 0.0
+        self._scale: list[float] = []   # per block: the largest |z| (after the first call)
+
+    def at(self, inv_t: float) -> tuple[float, float]:
+        """`(Σ_i log Σ_j exp(z_ij / T), Σ_i Σ_j p_ij z_ij)` at `inv_t = 1/T`, `p_i =
+        softmax(z_i / T)`; `target = Σ_i z_{i, y_i}` is set by the first call."""
+        width = self.z.shape[1]
+        rows = self.chunks[0].stop if self.chunks else 0
+        buf, row_sum, row_dot = np.empty((rows, width)), np.empty(rows), np.empty(rows)
+        ones = np.ones(width)
+        first = not self._scale and bool(self.chunks)
+        flat_rows = np.arange(0, rows * width, width) if first else None
+        log_sum = expected = 0.0
+        for b, sl in enumerate(self.chunks):
+            block, k = self.z[sl], sl.stop - sl.start
+            e, s, w = buf[:k], row_sum[:k], row_dot[:k]
+            if flat_rows is not None:
+                flat = block.reshape(-1)
+                self.target += float(np.take(flat, flat_rows[:k] + self.y[sl]).sum())
+                self._scale.append(max(-float(flat.min()), float(flat.max())))
+            if inv_t * self._scale[b] <= _EXP_LIMIT:   # False for NaN and Inf
+                np.multiply(block, inv_t, out=e)
+            else:
+                m = row_max(block)
+                np.subtract(block, m[:, None], out=e)
+                e *= inv_t
+                np.maximum(e, -700.0, out=e)
+                log_sum += inv_t * float(m.sum())
+            np.exp(e, out=e)
+            np.matmul(e, ones, out=s)
+            np.multiply(e, block, out=e)
+            np.matmul(e, ones, out=w)
+            np.divide(w, s, out=w)
+            expected += float(w.sum())
+            np.log(s, out=s)
+            log_sum += float(s.sum())
+        return log_sum, expected
+
+
+def softmax_value_grad(z: np.ndarray, y: np.ndarray) -> ValueGrad:
+    """`log T -> (mean NLL, d mean NLL / d log T)` of `z [N, C']` (C-contiguous float64),
+    `y [N]`: `NLL = mean(logsumexp(z/T) - z_y/T)`, `dNLL/dlog T = -(1/T)·mean(Σ_j p_j z_j -
+    z_y)` (`SoftmaxSums`). Raises the
+    `FieldError` of non-finite logits."""
+    sums = SoftmaxSums(z, y)
+
+    def value_grad(log_t: float) -> tuple[float, float]:
+        inv_t = float(np.exp(-log_t))
+        log_sum, expected = sums.at(inv_t)
+        return softmax_mean(len(z), inv_t, log_sum, expected, sums.target, z)
+
+    return value_grad
+
+
+def softmax_mean(n: int, inv_t: float, log_sum: float, expected: float, target: float,
+                 z: np.ndarray | None = None) -> tuple[float, float]:
+    """`(mean NLL, d mean NLL / d log T)` from the sums of `SoftmaxSums` over `n` rows;
+    non-finite sums raise the `FieldError` of the logits `z` when given (else ValueError)."""
+    if not np.isfinite(log_sum + expected + target):
+        if z is not None:
+            check_finite("logits", z)
+        raise ValueError("logits overflow float64 arithmetic; rescale them")
+    return (log_sum - inv_t * target) / n, -inv_t * (expected - target) / n
 
 
 def softmax_nll(z: np.ndarray, y: np.ndarray) -> Objective:
-    """Mean categorical NLL `mean(logsumexp(z/T) - z_y/T)` as a function of `log T`.
-
-    Rows are shifted by their maximum `m` once (`z - m <= 0`); since `T > 0`,
-    `logsumexp(z/T) = m/T + log(sum(exp((z - m)/T)))`, which never overflows.
-    """
-    n, width = z.shape
-    shifted, sum_shift_target = softmax_terms(z, y)
-    buf = np.empty((_chunks(n, width)[0].stop, width))
-    row_sums = np.empty(n)
-
-    def nll(log_t: float) -> float:
-        inv_t = float(np.exp(-log_t))
-        return (softmax_log_sum(shifted, inv_t, buf, row_sums) - sum_shift_target * inv_t) / n
-
-    return nll
+    """Mean categorical NLL `mean(logsumexp(z/T) - z_y/T)` of `z [N, C']`, `y [N]` as a
+    function of `log T` (`softmax_value_grad`)."""
+    value_grad = softmax_value_grad(np.ascontiguousarray(z, dtype=np.float64), y)
+    return lambda log_t: value_grad(log_t)[0]

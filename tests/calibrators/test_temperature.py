@@ -51,7 +51,7 @@ def test_sigmoid_recovers_temperature(t_true):
     scaler = TemperatureScaler(mode="sigmoid").fit(z, y)
     assert scaler.temperature_ == pytest.approx(t_true, rel=0.01)
     assert scaler.n_samples_ == N
-    assert scaler.nll_ <= scaler.nll_before_
+    assert scaler.nll_ <= _sigmoid_nll(z, y)(0.0)   # no worse than T = 1
 
 
 @pytest.mark.parametrize("t_true", [0.6, 1.7])
@@ -179,7 +179,7 @@ def test_binned_sigmoid_fit_equals_the_exact_minimiser(seed, scale, shift):
     scaler = TemperatureScaler().fit(z, y)
     exact = _sigmoid_nll(z, y)
     assert scaler.temperature_ == pytest.approx(exact_temperature(exact), rel=1e-6)
-    assert scaler.nll_ == pytest.approx(exact(np.log(scaler.temperature_)), rel=1e-12)
+    assert scaler.nll_ == pytest.approx(exact(np.log(scaler.temperature_)), rel=1e-9)
 
 
 def test_binned_sigmoid_nll_error_is_within_its_bound():
@@ -209,8 +209,8 @@ def test_softmax_subsample_bracket_fit_equals_the_exact_minimiser(t_true):
 def test_softmax_bracket_that_misses_is_searched_again(monkeypatch):
     z, y = softmax_sample(1.7, n=_SUBSAMPLE_MIN, n_classes=4, seed=6)
     full = TemperatureScaler(mode="softmax").fit(z, y)
-    # a bracket far narrower than the subsample's error: the optimum lies at its edge
-    monkeypatch.setattr(temperature, "_BRACKET_WIDTH", 1e-6)
+    # a first bracket far shorter than the Newton step: the root lies beyond its edge
+    monkeypatch.setattr(temperature, "_NEWTON_MARGIN", 1e-4)
     again = TemperatureScaler(mode="softmax").fit(z, y)
     exact = exact_temperature(_softmax_nll(z, y))
     assert again.temperature_ == pytest.approx(exact, rel=1e-6)
