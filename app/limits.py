@@ -17,10 +17,11 @@ class _TooLarge(HTTPException):
 
 
 class BodySizeLimitMiddleware:
-    """Refuse bodies over `max_bytes` (over `upload_bytes` for paths in `upload_paths`)."""
+    """Refuse bodies over `max_bytes`, or over `upload_bytes` for multipart bodies (dump
+    uploads) to the paths in `upload_paths`."""
 
     def __init__(self, app: ASGIApp, max_bytes: int, upload_bytes: int,
-                 upload_paths: tuple[str, ...] = ("/v1/fit",)) -> None:
+                 upload_paths: tuple[str, ...] = ("/v1/fit", "/v1/feedback")) -> None:
         self.app, self.max_bytes, self.upload_bytes = app, max_bytes, upload_bytes
         self.upload_paths = upload_paths
 
@@ -28,7 +29,8 @@ class BodySizeLimitMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        limit = self.upload_bytes if scope["path"] in self.upload_paths else self.max_bytes
+        limit = self.upload_bytes if (scope["path"] in self.upload_paths
+                                      and _multipart(scope)) else self.max_bytes
         for key, value in scope.get("headers", []):
             if key == b"content-length":
                 try:
@@ -63,6 +65,13 @@ class BodySizeLimitMiddleware:
         except _TooLarge as exc:
             if not started:
                 await _reply(send, 413, str(exc.detail))
+
+
+def _multipart(scope: Scope) -> bool:
+    for key, value in scope.get("headers", []):
+        if key == b"content-type":
+            return value.split(b";", 1)[0].strip().lower() == b"multipart/form-data"
+    return False
 
 
 async def _reply(send: Send, status: int, msg: str) -> None:
