@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -41,7 +42,11 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--repeat", type=int, default=20)
     parser.add_argument("--scenes", type=int, default=3, help="test scenes per sensor")
     parser.add_argument("--no-write", action="store_true", help="do not touch the docs")
+    parser.add_argument("--weights", action="append", default=[], metavar="SENSOR=PATH",
+                        help="time the weights file PATH for SENSOR (a candidate before it "
+                             "ships) beside the shipped ones; repeatable")
     args = parser.parse_args(argv)
+    candidates = dict(_candidate(text) for text in args.weights)
 
     from bench._report import write_section
     from detectors.registry import build_detector, sensor_names, weights_path
@@ -54,18 +59,21 @@ def main(argv: list[str] | None = None) -> None:
             skipped.append(sensor)
             print(f"{sensor}: skipped (no weights at {weights_path(sensor)})")
             continue
-        model = build_detector(sensor)
-        seeds = list(SPLITS["test"])[:args.scenes]
-        ms, n_points = [], []
-        for seed in seeds:
-            pts = np.array(make_frame(seed, sensor).sensor_frame.points, dtype=np.float32)
-            n_points.append(len(pts))
-            ms.append(time_forward(model, torch.from_numpy(pts), args.repeat))
-        t = statistics.median(ms)
-        rows.append((sensor, int(np.mean(n_points)), model.config.n_queries, t))
-        print(f"{sensor}: {t:.1f} ms/frame (median of {len(seeds)} scenes x {args.repeat}), "
-              f"{int(np.mean(n_points))} points, {model.config.n_queries} queries, "
-              f"ratio to {REFERENCE_MS:.0f} ms reference {t / REFERENCE_MS:.2f}")
+        files = [(sensor, None)] + ([(f"{sensor} ({candidates[sensor].name})",
+                                      candidates[sensor])] if sensor in candidates else [])
+        for label, path in files:
+            model = build_detector(sensor, weights=path)
+            seeds = list(SPLITS["test"])[:args.scenes]
+            ms, n_points = [], []
+            for seed in seeds:
+                pts = np.array(make_frame(seed, sensor).sensor_frame.points, dtype=np.float32)
+                n_points.append(len(pts))
+                ms.append(time_forward(model, torch.from_numpy(pts), args.repeat))
+            t = statistics.median(ms)
+            rows.append((label, int(np.mean(n_points)), model.config.n_queries, t))
+            print(f"{label}: {t:.1f} ms/frame (median of {len(seeds)} scenes x {args.repeat}), "
+                  f"{int(np.mean(n_points))} points, {model.config.n_queries} queries, "
+                  f"ratio to {REFERENCE_MS:.0f} ms reference {t / REFERENCE_MS:.2f}")
 
     lines = ["## Detectors: forward time per frame (CPU, 2 threads, batch 1)", "",
              "Median over test-split scenes of `model([points])` under `torch.inference_mode`; "
@@ -77,6 +85,13 @@ def main(argv: list[str] | None = None) -> None:
         lines += ["", f"Skipped (no shipped weights yet): {', '.join(skipped)}."]
     if not args.no_write:
         write_section("detectors", "\n".join(lines))
+
+
+def _candidate(text: str) -> tuple[str, Path]:
+    sensor, sep, path = text.partition("=")
+    if not sep or not Path(path).is_file():
+        raise SystemExit(f"--weights must be SENSOR=PATH of an existing file, got {text!r}")
+    return sensor, Path(path)
 
 
 if __name__ == "__main__":
