@@ -109,8 +109,12 @@ class TemperatureScaler:
             return self.fit_gradient(softmax_value_grad(z, y), len(z), z.shape[1], start)
         s, span = _predicted(z)
         if len(s) > _SIGMOID_BINS:
-            bins = SigmoidBins.from_logits(s, y, span=span)
-            return self.fit_bins(bins, z.shape[1], sigmoid_nll(s, y))
+            bins = SigmoidBins.from_logits(s, y, span=span, clip=False)   # span: s's own
+
+            def exact(log_t: float) -> float:   # built only if the bins are not exact enough
+                return sigmoid_nll(s, y)(log_t)
+
+            return self.fit_bins(bins, z.shape[1], exact)
         log_t, self.nll_ = self._search(sigmoid_nll(s, y), bounds, bounds)
         self.n_samples_, self.n_columns_ = int(z.shape[0]), int(z.shape[1])
         return self

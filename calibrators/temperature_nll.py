@@ -116,9 +116,11 @@ class SigmoidBins:
 
     @classmethod
     def from_logits(cls, s: np.ndarray, y: np.ndarray, n_bins: int = SIGMOID_BINS,
-                    span: tuple[float, float] | None = None) -> SigmoidBins:
+                    span: tuple[float, float] | None = None, *, clip: bool = True
+                    ) -> SigmoidBins:
         """Bin `s [N]` (float64) with 0/1 labels `y [N]` on `n_bins` bins over `span`
-        (`(low, high)`, containing every `s`; default `(min s, max s)`)."""
+        (`(low, high)`, containing every `s`; default `(min s, max s)`). `clip=False` when
+        `span` is exactly `s`'s own minimum and maximum (nothing can round outside)."""
         low, high = (float(s.min()), float(s.max())) if span is None else span
         low, width = cls.grid(low, high, n_bins)
         sums = [np.zeros(n_bins) for _ in range(4)]
@@ -126,14 +128,17 @@ class SigmoidBins:
         rows = chunks[0].stop if chunks else 0
         pos, whole, power, idx = np.empty(rows), np.empty(rows), np.empty(rows), np.empty(
             rows, dtype=np.intp)
+        sum_ys = 0.0
         for sl in chunks:   # cache-sized blocks: no large temporary arrays
             k = sl.stop - sl.start
             p, w, q, i = pos[:k], whole[:k], power[:k], idx[:k]
+            np.copyto(q, y[sl], casting="unsafe")   # the labels as floats, block by block
+            sum_ys += _dot(q, s[sl])
             np.subtract(s[sl], low, out=p)
             p *= 1.0 / width   # in [0, n_bins): integer part = bin, the rest = the offset
             np.floor(p, out=w)
             np.copyto(i, w, casting="unsafe")
-            if span is not None:   # a caller's span: keep stray rounding inside the grid
+            if span is not None and clip:   # a caller's span: keep stray rounding inside
                 np.clip(i, 0, n_bins - 1, out=i)
                 np.copyto(w, i)
             p -= w
@@ -143,7 +148,7 @@ class SigmoidBins:
             np.add.at(sums[2], i, q)
             q *= p
             np.add.at(sums[3], i, q)
-        return cls(len(s), _dot(y.astype(np.float64), s), low, width, *sums)
+        return cls(len(s), sum_ys, low, width, *sums)
 
     def error_bound(self, log_t: float) -> float:
         """Bound on the absolute error of `objective()(log_t)`: `(h/T)^4 / 192`."""
@@ -158,17 +163,27 @@ class SigmoidBins:
 
     def coarsen(self, factor: int) -> SigmoidBins:
         """The same statistics on bins `factor` times as wide (`B` divisible by `factor`):
-        an offset `o` in fine bin `j` of a coarse bin is `(j + o) / factor` there."""
-        j = np.tile(np.arange(factor, dtype=np.float64), len(self.count) // factor)
-        m, s1, s2, s3 = self.count, self.offset, self.offset_sq, self.offset_cu
+        an offset `o` in fine bin `j` of a coarse bin is `(j + o) / factor` there, so the
+        coarse sums are the fine ones' binomial expansions, taken as products with the
+        powers of `j` (no temporaries of the fine grid's size)."""
+        j = np.arange(factor, dtype=np.float64)
+        j2, j3 = j * j, j * j * j
+        # [factor, B / factor]: row j holds fine bin j of every coarse bin, so the sums below
+        # run along long rows (numpy is slow at reducing many short ones)
+        m, s1, s2, s3 = (np.ascontiguousarray(x.reshape(-1, factor).T)
+                         for x in (self.count, self.offset, self.offset_sq, self.offset_cu))
 
-        def merged(x: np.ndarray) -> np.ndarray:
-            return x.reshape(-1, factor).sum(axis=1)
+        def at(x: np.ndarray, w: np.ndarray) -> np.ndarray:
+            return np.einsum("ji,j->i", x, w)   # numpy's loop: a BLAS call may start threads
+
+        def total(x: np.ndarray) -> np.ndarray:
+            return np.add.reduce(x, axis=0)
 
         return SigmoidBins(
-            self.n, self.sum_ys, self.low, self.width * factor, merged(m),
-            merged((m * j + s1) / factor), merged((m * j * j + 2.0 * j * s1 + s2) / factor**2),
-            merged((m * j**3 + 3.0 * j * j * s1 + 3.0 * j * s2 + s3) / factor**3))
+            self.n, self.sum_ys, self.low, self.width * factor, total(m),
+            (at(m, j) + total(s1)) / factor,
+            (at(m, j2) + 2.0 * at(s1, j) + total(s2)) / factor**2,
+            (at(m, j3) + 3.0 * at(s1, j2) + 3.0 * at(s2, j) + total(s3)) / factor**3)
 
     def gradient_bound(self, log_t: float) -> float:
         """Bound on the absolute error of the derivative in log T of `value_grad()`:
