@@ -175,3 +175,17 @@ def test_a_feedback_token_may_send_feedback_and_nothing_else(seeded, labelled):
         (entry,) = c.get("/v1/audit", headers=ADMIN).json()["entries"]
         assert entry["action"] == "feedback" and entry["token_id"] != token_id(TOKEN)
         assert entry["token_id"] == token_id("labeller-token-0123456789")
+
+
+def test_a_dump_upload_has_the_upload_limit_and_json_the_request_limit(seeded, labelled):
+    """A multipart dump over the request limit but within the upload limit is taken; a JSON
+    body over the request limit is a 413 before it is read."""
+    body = npz_bytes(labelled)
+    settings = seeded.model_copy(update={"max_request_bytes": len(body) // 2,
+                                         "max_upload_bytes": 4 * len(body)})
+    with TestClient(create_app(settings)) as c:
+        r = c.post(FB, headers=ADMIN, files={"dump": ("fb.npz", body)})
+        assert r.status_code == 200, r.text
+        r = c.post(FB, headers={**ADMIN, "content-type": "application/json"},
+                   content=b"{" + b" " * len(body) + b"}")
+        assert r.status_code == 413
