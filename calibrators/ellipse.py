@@ -57,15 +57,17 @@ def radius_ellipse(cov: np.ndarray, radius: np.ndarray) -> Ellipse:
     return radius_ellipses(cov, r[:, None])[0]
 
 
-def radius_ellipses(cov: np.ndarray, radii: np.ndarray) -> list[Ellipse]:
+def radius_ellipses(cov: np.ndarray, radii: np.ndarray, *, check: bool = True
+                    ) -> list[Ellipse]:
     """`radius_ellipse` of `cov [N, 2, 2]` at each column of `radii [N, Q]`: Q ellipses from
-    one eigen-decomposition."""
+    one eigen-decomposition. `check=False` skips the symmetry / PSD test of `cov` for
+    matrices built from checked ones (the serving path's `Σ + k·d·I`)."""
     r = np.asarray(radii, dtype=np.float64)
     if r.ndim != 2:
         raise ValueError(f"radii must have 2 dimensions [N, Q], got shape {r.shape}")
     if not (r >= 0).all():   # NaN fails too
         raise ValueError(f"radius must be >= 0 (inf: unbounded), got {float(r[~(r >= 0)][0])}")
-    single, (high, low, angle) = _eigen(cov)
+    single, (high, low, angle) = _eigen(cov, check)
     if single or r.shape[0] != high.shape[0]:
         raise ValueError(f"radius must have one entry per covariance [N, 2, 2], got "
                          f"{r.shape[0]} for {high.shape[0]}")
@@ -77,12 +79,14 @@ def radius_ellipses(cov: np.ndarray, radii: np.ndarray) -> list[Ellipse]:
     return [Ellipse(major[j], minor[j], angle) for j in range(r.shape[0])]
 
 
-def _eigen(cov: np.ndarray) -> tuple[bool, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+def _eigen(cov: np.ndarray, check: bool = True
+           ) -> tuple[bool, tuple[np.ndarray, np.ndarray, np.ndarray]]:
     """(single matrix?, (λ_max [N], λ_min [N], major-axis angle [N])) of `cov`."""
-    arr = as_float_array("cov", cov)
+    arr = as_float_array("cov", cov) if check else np.asarray(cov, dtype=np.float64)
     single = arr.ndim == 2
     batch = arr[None] if single else arr
-    check_covariances("cov", batch, dim=2)
+    if check:
+        check_covariances("cov", batch, dim=2)
     a, b, c = batch[:, 0, 0], batch[:, 0, 1], batch[:, 1, 1]
     mean = 0.5 * (a + c)
     radius = np.hypot(0.5 * (a - c), b)

@@ -320,7 +320,10 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
                             for i in range(0, len(levels), MAX_LEVELS)], axis=1)[index]
     names = {int(g): _group_name(profile, conformal, conformal.groups_[g])
              for g in np.unique(index)}
-    return (dict(zip(map(float, levels), radius_ellipses(block, radii), strict=True)),
+    # Σ' was built from checked Σ (or a spread) by adding k·d·I: symmetric PSD, or an
+    # overflow that `_check_finite` places
+    return (dict(zip(map(float, levels), radius_ellipses(block, radii, check=False),
+                     strict=True)),
             {float(q): radii[:, j] for j, q in enumerate(levels)}, method,
             [names[g] for g in index.tolist()])
 
