@@ -84,10 +84,18 @@ class CalibrateEngine:
             return CallOutcome(status, dumps_json(body))
 
     def _calibrate(self, call: CalibrateCall) -> CallOutcome:
-        body = _with_query(parse_json(CalibrateRequest, call.body), call)
-        loaded = self.cache.resolve(body.profile, self.default_profile)
-        rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence,
-                                levels=body.levels, max_detections=self.max_detections)
+        parsed = parse_json(CalibrateRequest, call.body)
+        body = _with_query(parsed, call)
+        from_query = {"profile", "levels", "ellipse_confidence"} - parsed.model_fields_set
+        try:
+            loaded = self.cache.resolve(body.profile, self.default_profile,
+                                        loc=_where("profile", from_query))
+            rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence,
+                                    levels=body.levels, max_detections=self.max_detections)
+        except RequestError as exc:   # an option the query gave is located in the query
+            if len(exc.loc) > 1 and exc.loc[0] == "body" and exc.loc[1] in from_query:
+                exc.loc[0] = "query"
+            raise
         prof = loaded.profile
         doc = {"profile": loaded.ref(), "classes": list(prof.classes),
                "cov_dims": list(prof.cov_dims), "ellipse_confidence": body.ellipse_confidence,
@@ -122,6 +130,10 @@ class CalibrateEngine:
                 "cov_dims": list(prof.cov_dims)}
         out = calibrated_batch(request, res, prof.classes, _confidence(call), meta)
         return CallOutcome(200, write_stream(out), loaded.record.name, len(res), ARROW_STREAM)
+
+
+def _where(field: str, from_query: set[str]) -> tuple[str, str]:
+    return ("query" if field in from_query else "body", field)
 
 
 def _confidence(call: CalibrateCall) -> float:

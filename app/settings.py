@@ -23,8 +23,10 @@ class Settings(BaseSettings):
         None, description="Bearer token for admin endpoints; default read from "
                           "data_dir/admin_token if that file exists, else admin is refused.")
     default_profile: str = Field("lidar", description="Profile name used when none is given.")
-    max_request_bytes: int = Field(8 * 2**20, gt=0, description="Body limit (413) except dump uploads.")
-    max_upload_bytes: int = Field(512 * 2**20, gt=0, description="Body limit of multipart dump uploads (POST /v1/fit, /v1/feedback).")
+    max_request_bytes: int = Field(8 * 2**20, gt=0,
+                                   description="Body limit (413) except dump uploads.")
+    max_upload_bytes: int = Field(512 * 2**20, gt=0, description="Body limit of multipart dump "
+                                  "uploads (POST /v1/fit, /v1/feedback).")
     max_dump_bytes: int = Field(1 * 2**30, gt=0, description="Inflated size of an uploaded dump "
                                 "(all NPZ arrays, or each nuScenes JSON file); 422 above.")
     max_detections: int = Field(20_000, gt=0, description="Detections one calibrate or detect "

@@ -105,3 +105,16 @@ def test_metrics_label_the_route_and_count_detections(client, dump_given):
     assert sample(after, req) - sample(before, req) == 2
     det = 'detcal_detections_calibrated_total{profile="lidar"}'
     assert sample(after, det) - sample(before, det) == 8
+
+
+@pytest.mark.parametrize(("query", "loc"), [("?levels=0.5&levels=1.0", ["query", "levels", 1]),
+                                            ("?profile=nope@9", None)])
+def test_json_bodies_locate_a_bad_query_option_in_the_query(client, dump_given, detection,
+                                                             query, loc):
+    frame = {"frame_id": "f", "detections": [detection(dump_given, 0)]}
+    r = client.post(CAL + query, json={"frames": [frame]})
+    assert r.status_code in (404, 422), r.text
+    if loc is not None:
+        assert r.json()["detail"][0]["loc"] == loc
+    body = client.post(CAL, json={"frames": [frame], "levels": [0.5, 1.0]})
+    assert body.json()["detail"][0]["loc"] == ["body", "levels", 1]
