@@ -61,10 +61,11 @@ class DepthScaler:
         n, dim = r.shape
         groups, pooled = _binned(terms, codes, len(keys))
         k_of, pooled_k = self._fit_binned(groups, pooled, keys, min_samples, bounds)
-        exact = terms.group_nll(k_of, codes)
+        exact, pooled_nll = terms.fitted_nll(k_of, codes, pooled_k,
+                                             np.array([g.n for g in groups]))
         self.nll_ = {key: (None if key in self.fallback_classes_ else float(exact[g]))
                      for g, key in enumerate(keys)}
-        self.pooled_k_, self.pooled_nll_ = pooled_k, terms.nll(pooled_k)
+        self.pooled_k_, self.pooled_nll_ = pooled_k, pooled_nll
         self.n_dims_ = dim
         return self
 
@@ -202,9 +203,12 @@ def _class_codes(classes: np.ndarray, n: int) -> tuple[list, np.ndarray]:
     if arr.dtype.kind in "iu":
         low, high = int(arr.min()), int(arr.max())
         if high - low <= 4 * n:  # small integer labels: a counting pass, no sort
-            present = np.bincount(arr - low, minlength=high - low + 1) > 0
-            code_of = np.cumsum(present) - 1
-            return (np.flatnonzero(present) + low).tolist(), code_of[arr - low]
+            shifted = arr - low if low else arr
+            present = np.bincount(shifted, minlength=high - low + 1) > 0
+            keys = (np.flatnonzero(present) + low).tolist()
+            if not low and present.all():  # labels 0 .. C - 1: each its own code
+                return keys, shifted.astype(np.int64)
+            return keys, (np.cumsum(present) - 1)[shifted]
     try:
         keys, codes = np.unique(arr, return_inverse=True)
     except TypeError:

@@ -16,10 +16,11 @@ from calibrators._spectral import _spectral, _spectral_2x2
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 _WIDEN = 100.0  # an optimum at the upper bound is searched again once up to 100 x the bound
-_CHUNK = 1 << 15  # samples per block in the NLL loop: its buffers stay in the CPU cache
+_CHUNK = 1 << 15  # samples per block of the NLL and binning loops: buffers stay in the cache
 _MANTISSA_BITS = 9  # bins of a = λ/d per octave: 2**9, a relative width <= 2e-3
 _OCTAVES = 64  # octaves of a below its maximum that the grid covers
 _BINS = _OCTAVES << _MANTISSA_BITS  # bins per class
+_U64_MAX = int(np.iinfo(np.uint64).max)
 
 
 @dataclass(frozen=True)
@@ -29,23 +30,28 @@ class _Terms:
     eig: np.ndarray
     sq: np.ndarray
     dist: np.ndarray
+    grid: tuple[int, int, bool] | None = None  # `_key_grid(self, [])` when taken in build
 
     @classmethod
     def build(cls, r: np.ndarray, cov: np.ndarray | None, d: np.ndarray) -> _Terms:
         """Terms of residuals `r [N, D]` under `cov [N, D, D]` (None = 0) at distances `d`;
         checks that Σ is symmetric PSD and that Σ + k·d·I can be regular."""
+        near = np.flatnonzero(d == 0)
+        scan = None
         if cov is None:
             eig, sq = np.zeros((r.shape[1], r.shape[0])), np.ascontiguousarray((r * r).T)
-        elif r.shape[1] == 2:
-            eig, sq = _spectral_2x2(cov, r)
+        elif r.shape[1] == 2:  # the grid of a = λ/d from each block while it is in the cache
+            scan = None if len(near) else _GridScan(d)
+            eig, sq = _spectral_2x2(cov, r, None if scan is None else scan.add_block)
         else:
             eig, sq = _spectral(cov, r)
-        singular = (d == 0) & (eig.min(axis=0) == 0)
-        if singular.any():
-            i = int(np.argmax(singular))
+        # eig >= 0, ascending (`_zero_tiny`): row 0 is the min
+        singular = near[eig[0, near] == 0]
+        if len(singular):
+            i = int(singular[0])
             what = "covariances is None" if cov is None else f"covariances[{i}] is singular"
             raise ValueError(f"distances[{i}] is 0 and {what}: Σ + k·d·I is singular for every k")
-        return cls(eig, sq, d)
+        return cls(eig, sq, d, None if scan is None else scan.grid())
 
     def nll(self, k: float) -> float:
         """Mean Gaussian NLL of the residuals under `Σ + k d I`, in cache-sized blocks."""
@@ -85,6 +91,42 @@ class _Terms:
             counts = np.bincount(codes, minlength=len(k))
             value = 0.5 * totals / counts + 0.5 * n_dims * _LOG_2PI
         return np.where(np.isfinite(value), value, np.inf)
+
+    def fitted_nll(self, k: np.ndarray, codes: np.ndarray, pooled_k: float,
+                   counts: np.ndarray | None = None) -> tuple[np.ndarray, float]:
+        """`(group_nll(k, codes), nll(pooled_k))` in one pass over the data, each summed in
+        the same order as there; `counts [G]`, the samples per group, if known."""
+        n_dims, n = self.eig.shape
+        totals, pooled = np.zeros(len(k)), 0.0
+        size = min(n, _CHUNK)
+        buf, var, tmp, kd, kd_pooled = (np.empty(size) for _ in range(5))
+        with np.errstate(divide="ignore", invalid="ignore"):
+            for start in range(0, n, _CHUNK):
+                sl = slice(start, min(start + _CHUNK, n))
+                m = sl.stop - start
+                b, v, t, kg, kp = buf[:m], var[:m], tmp[:m], kd[:m], kd_pooled[:m]
+                group, dist = codes[sl], self.dist[sl]
+                np.take(k, group, out=kg)
+                kg *= dist
+                np.multiply(dist, pooled_k, out=kp)
+                for j in range(n_dims):
+                    eig, sq = self.eig[j, sl], self.sq[j, sl]
+                    np.add(eig, kg, out=v)
+                    if j:
+                        b += np.log(v, out=t)
+                    else:  # the same as 0 + log v
+                        np.log(v, out=b)
+                    b += np.divide(sq, v, out=t)
+                    np.add(kp, eig, out=v)
+                    pooled += float(np.log(v, out=t).sum())
+                    pooled += float(np.divide(sq, v, out=t).sum())
+                totals += np.bincount(group, weights=b, minlength=len(k))
+            if counts is None:
+                counts = np.bincount(codes, minlength=len(k))
+            value = 0.5 * totals / counts + 0.5 * n_dims * _LOG_2PI
+            pooled_value = 0.5 * pooled / n + 0.5 * n_dims * _LOG_2PI
+        return (np.where(np.isfinite(value), value, np.inf),
+                pooled_value if np.isfinite(pooled_value) else np.inf)
 
 
 @dataclass(frozen=True)
@@ -163,28 +205,37 @@ class BinSums:
 
     @classmethod
     def build(cls, terms: _Terms, codes: np.ndarray, n_groups: int) -> BinSums:
-        """Sums of the terms of samples in groups `codes [N]` (0 .. n_groups - 1)."""
-        n_dims = terms.eig.shape[0]
-        near = terms.dist == 0
-        with np.errstate(divide="ignore"):
-            row_const = n_dims * np.log(terms.dist)
-        if near.any():  # d = 0: Σ is regular there (checked in build); its terms are k-free
-            eig, sq = terms.eig[:, near], terms.sq[:, near]
-            row_const[near] = (np.log(eig) + sq / eig).sum(axis=0)
-            far = ~near
-            eig, sq, dist, far_codes = (terms.eig[:, far], terms.sq[:, far], terms.dist[far],
-                                        codes[far])
-        else:
-            eig, sq, dist, far_codes = terms.eig, terms.sq, terms.dist, codes
-        const = np.bincount(codes, weights=row_const, minlength=n_groups)[:n_groups]
-        n = np.bincount(codes, minlength=n_groups)[:n_groups]
-        a, b = eig / dist, sq / dist  # [D, M]
-        key, n_bins, low = _log_bin_low(a)
-        key += (far_codes * (n_bins + 1))[None, :]
-        key, a, b = key.ravel(), a.ravel(), b.ravel()
-        size = n_groups * (n_bins + 1)
-        sums = np.stack([np.bincount(key, weights=w, minlength=size).reshape(n_groups, n_bins + 1)
-                         for w in (None, a, b, a * b)])
+        """Sums of the terms of samples in groups `codes [N]` (0 .. n_groups - 1), in
+        cache-sized blocks of samples: no full-size temporary array. Pairs are added dim by
+        dim, samples in order (`np.add.at` adds in index order), so every sum is rounded
+        exactly as one `np.bincount` over the `[D, N]` pairs rounds it."""
+        n_dims, size = terms.eig.shape
+        near = np.flatnonzero(terms.dist == 0)
+        low, n_bins, plain = terms.grid if terms.grid is not None else _key_grid(terms, near)
+        width = n_bins + 1
+        group_offset = np.arange(n_groups) * width + (1 - low if plain else 0)
+        sums = np.zeros((4, n_groups, width))
+        flat = sums.reshape(4, -1)  # the groups' columns side by side: key = g·(1 + B) + bin
+        const = np.zeros(n_groups)
+        buf = _PairBuffers(min(size, _CHUNK))
+        for j in range(n_dims):
+            for start in range(0, size, _CHUNK):
+                stop = min(start + _CHUNK, size)
+                if j == 0:
+                    np.add.at(const, codes[start:stop], _row_const(terms, start, stop, near))
+                rows = _far_rows(start, stop, near)
+                group = codes[rows]
+                a, b, key = buf.pairs(terms, j, rows)
+                _bin_key(a, low, n_bins, plain, out=key)
+                key += np.take(group_offset, group, out=buf.offset[:len(group)])
+                np.add.at(flat[0], key, 1.0)
+                np.add.at(flat[1], key, a)
+                np.add.at(flat[2], key, b)
+                b *= a
+                np.add.at(flat[3], key, b)
+        # every sample with d > 0 put D pairs in its group's bins (exact counts in float)
+        n = sums[0].sum(axis=1).astype(np.int64) // n_dims
+        n += np.bincount(codes[near], minlength=n_groups)[:n_groups]
         return cls(n_dims, n, const, low, sums)
 
     @classmethod
@@ -217,6 +268,125 @@ class BinSums:
         pooled = _Binned.from_sums(int(self.n.sum()), self.n_dims, float(self.const.sum()),
                                    *self.sums.sum(axis=1))
         return groups, pooled
+
+
+class _PairBuffers:
+    """Reused buffers of one block of `BinSums.build`: `a = λ/d`, `b = q/d` and the bin keys
+    `[m]` of one dim, and the group offsets `[m]`."""
+
+    def __init__(self, size: int) -> None:
+        self.a, self.b = np.empty(size), np.empty(size)
+        self.key, self.offset = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
+
+    def pairs(self, terms: _Terms, j: int, rows: slice | np.ndarray
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`(a [m], b [m], key buffer [m])` of dim `j` of the samples `rows` (all d > 0)."""
+        dist = terms.dist[rows]
+        a, b = self.a[:len(dist)], self.b[:len(dist)]
+        np.divide(terms.eig[j, rows], dist, out=a)
+        np.divide(terms.sq[j, rows], dist, out=b)
+        return a, b, self.key[:len(dist)]
+
+
+def _row_const(terms: _Terms, start: int, stop: int, near: np.ndarray) -> np.ndarray:
+    """The k-free terms `[m]` of samples `start .. stop - 1`: `D·log d`, and for d = 0 (the
+    sorted indices `near`; Σ is regular there, checked in `_Terms.build`) the whole NLL sum
+    `Σ_j log λ_j + q_j/λ_j`."""
+    with np.errstate(divide="ignore"):
+        row = terms.eig.shape[0] * np.log(terms.dist[start:stop])
+    lo, hi = np.searchsorted(near, (start, stop))
+    if lo < hi:
+        idx = near[lo:hi]
+        eig, sq = terms.eig[:, idx], terms.sq[:, idx]
+        row[idx - start] = (np.log(eig) + sq / eig).sum(axis=0)
+    return row
+
+
+def _far_rows(start: int, stop: int, near: np.ndarray) -> slice | np.ndarray:
+    """The samples `start .. stop - 1` that are not in `near` (sorted indices, d = 0): a
+    slice, or an index array where the block holds some of `near`."""
+    lo, hi = np.searchsorted(near, (start, stop))
+    if lo == hi:
+        return slice(start, stop)
+    keep = np.ones(stop - start, dtype=bool)
+    keep[near[lo:hi] - start] = False
+    return np.flatnonzero(keep) + start
+
+
+def _key_grid(terms: _Terms, near: np.ndarray) -> tuple[int, int, bool]:
+    """`_GridScan.grid()` of the `a = λ/d` of all samples not in `near` (d > 0), in blocks."""
+    n_dims, size = terms.eig.shape
+    scan = _GridScan(terms.dist)
+    buf = np.empty(n_dims * min(size, _CHUNK))
+    for start in range(0, size, _CHUNK):
+        rows = _far_rows(start, min(start + _CHUNK, size), near)
+        dist = terms.dist[rows]
+        a = buf[:n_dims * len(dist)].reshape(n_dims, len(dist))
+        scan.add(np.divide(terms.eig[:, rows], dist, out=a))
+    return scan.grid()
+
+
+class _GridScan:
+    """The largest and the smallest positive of blocks of `a = λ/d >= 0` (`_zero_tiny`), and
+    whether any is 0: what `grid()` (`_log_bin_low`'s grid) needs."""
+
+    def __init__(self, dist: np.ndarray) -> None:
+        self.dist, self.buf, self.bits = dist, np.empty(0), np.empty(0, dtype=np.uint64)
+        self.largest, self.smallest, self.wrapped = 0, _U64_MAX, 0
+
+    def add_block(self, start: int, eig: np.ndarray) -> None:
+        """Adds `eig [D, m]` of samples `start ..` (all d > 0); `start = 0` starts afresh."""
+        if start == 0:
+            self.largest, self.smallest, self.wrapped = 0, _U64_MAX, 0
+        m = eig.shape[1]
+        if self.buf.size < eig.size:
+            self.buf = np.empty(eig.size)
+        a = self.buf[:eig.size].reshape(eig.shape)
+        self.add(np.divide(eig, self.dist[start:start + m], out=a))
+
+    def add(self, a: np.ndarray) -> None:
+        """Adds the contiguous `a` (any shape)."""
+        if not a.size:
+            return
+        # the bits of a >= 0 grow with it; a = 0 (bits 0) - 1 wraps to the largest uint64
+        bits = a.reshape(-1).view(np.uint64)
+        if self.bits.size < a.size:
+            self.bits = np.empty(a.size, dtype=np.uint64)
+        below = np.subtract(bits, 1, out=self.bits[:a.size])
+        self.smallest, high = min(self.smallest, int(below.min())), int(below.max())
+        self.wrapped = max(self.wrapped, high)
+        self.largest = max(self.largest, int(bits.max()) if high == _U64_MAX else high + 1)
+
+    def grid(self) -> tuple[int, int, bool]:
+        """`(low, B, plain)`: the grid `_log_bin_low` puts on the `a`, from the largest `a`
+        and the smallest positive one (`(0, 0, False)` when no `a > 0`); `plain` when no `a`
+        is 0 and the grid reaches the smallest, so that every bin is `1 + raw key - low`."""
+        if self.largest == 0:
+            return 0, 0, False
+        top = self.largest >> (52 - _MANTISSA_BITS)
+        low = (self.smallest + 1) >> (52 - _MANTISSA_BITS)
+        plain = self.wrapped < _U64_MAX and low >= top - _BINS + 1
+        low = max(low, top - _BINS + 1)
+        return low, top - low + 1, plain
+
+
+def _bin_key(a: np.ndarray, low: int, n_bins: int, plain: bool, out: np.ndarray
+             ) -> np.ndarray:
+    """The bins of `a >= 0` on the grid `(low, B, plain)` of `_key_grid` into `out` (int64,
+    the shape of `a`), as `_log_bin_low` gives them: `1 + raw key - low` floored at 1, 0 for
+    `a = 0`; only the raw key where `plain` (the caller adds `1 - low`)."""
+    if not n_bins:
+        out.fill(0)
+        return out
+    bits = a.view(np.int64)
+    np.right_shift(bits, 52 - _MANTISSA_BITS, out=out)
+    if plain:
+        return out
+    out -= low - 1
+    np.maximum(out, 1, out=out)
+    # a = 0 has bits 0, so this sets its bin to 0; for a > 0 (bits >= 1) the bin is <= bits
+    np.minimum(out, bits, out=out)
+    return out
 
 
 def _binned(terms: _Terms, codes: np.ndarray, n_groups: int) -> tuple[list[_Binned], _Binned]:
