@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> None:
             skipped.append(sensor)
             print(f"{sensor}: skipped (no weights at {weights_path(sensor)})")
             continue
-        files = [(sensor, None)] + ([(f"{sensor} ({candidates[sensor].name})",
+        files = [(sensor, None)] + ([(f"{sensor} (candidate {candidates[sensor]})",
                                       candidates[sensor])] if sensor in candidates else [])
         for label, path in files:
             model = build_detector(sensor, weights=path)
