@@ -22,10 +22,9 @@ from torch import Tensor, nn
 from detectors.export.scores import constant
 
 
-class LayerSpread(nn.Module):
-    """Sample covariance (ddof = 1) `[N, D, D]` of layer boxes `[N, L, 9]` over the box
-    columns `index [D]`; the columns at `yaw [D]` (True) are angles, wrapped to (−pi, pi]
-    around the final layer's before the covariance is taken."""
+class _BoxColumns(nn.Module):
+    """The box columns `index [D]` a spread is taken over, which of them are angles
+    (`yaw [D]`), and pi."""
 
     def __init__(self, index: list[int], yaw: list[bool]) -> None:
         super().__init__()
@@ -33,6 +32,12 @@ class LayerSpread(nn.Module):
         self.register_buffer("yaw", torch.tensor(yaw, dtype=torch.bool))
         self.any_yaw = bool(any(yaw))
         self.register_buffer("pi", constant(math.pi))
+
+
+class LayerSpread(_BoxColumns):
+    """Sample covariance (ddof = 1) `[N, D, D]` of layer boxes `[N, L, 9]` over the box
+    columns `index [D]`; the columns at `yaw [D]` (True) are angles, wrapped to (−pi, pi]
+    around the final layer's before the covariance is taken."""
 
     def forward(self, layer_boxes: Tensor) -> Tensor:
         values = layer_boxes.index_select(2, self.index)                      # [N, L, D]
@@ -44,18 +49,11 @@ class LayerSpread(nn.Module):
         return torch.matmul(centred.transpose(1, 2), centred) / (values.shape[1] - 1)
 
 
-class HypothesesSpread(nn.Module):
+class HypothesesSpread(_BoxColumns):
     """Group-score-weighted covariance `[N, D, D]` of box hypotheses `[N, H, 9]` with scores
     `[N, H]` over the box columns `index [D]` (weights `s / Σ s`, equal where a row's scores
     sum to 0); the columns at `yaw [D]` (True) are wrapped to (−pi, pi] around the
     highest-scoring hypothesis's yaw before the covariance is taken."""
-
-    def __init__(self, index: list[int], yaw: list[bool]) -> None:
-        super().__init__()
-        self.register_buffer("index", torch.tensor(index, dtype=torch.int64))
-        self.register_buffer("yaw", torch.tensor(yaw, dtype=torch.bool))
-        self.any_yaw = bool(any(yaw))
-        self.register_buffer("pi", constant(math.pi))
 
     def forward(self, hyp_boxes: Tensor, hyp_scores: Tensor) -> Tensor:
         values = hyp_boxes.to(torch.float64).index_select(2, self.index)      # [N, H, D]

@@ -9,6 +9,7 @@ import pyarrow as pa
 import pytest
 
 from calibrators.io.arrow_batch import ARROW_STREAM, write_stream
+from tests.app.arrow_compare import assert_same_floats
 
 CAL = "/v1/calibrate"
 ARROW = {"content-type": ARROW_STREAM}
@@ -58,15 +59,7 @@ def test_arrow_and_json_give_the_same_floats(client, dump_given, detection, prof
     dets = body.json()["frames"][0]["detections"]
     assert table["id"].to_pylist() == list(range(n))
     assert table["label"].to_pylist() == [d["label"] for d in dets]
-    for column, key in (("score", "score"), ("score_raw", "score_raw"), ("distance", "distance")):
-        assert table[column].to_pylist() == [d[key] for d in dets], column
-    assert [np.ravel(c).tolist() for c in table["covariance"].to_pylist()] == [
-        np.ravel(d["covariance"]).tolist() for d in dets]
-    for level in ("0.5", "0.9"):
-        arrow = table[f"ellipse_{level}"].to_pylist()
-        assert [(e["semi_major"], e["semi_minor"], e["angle"]) for e in arrow] == [
-            (d["ellipses"][level]["semi_major"], d["ellipses"][level]["semi_minor"],
-             d["ellipses"][level]["angle"]) for d in dets]
+    assert_same_floats(table, dets)
 
 
 @pytest.mark.parametrize(("change", "status", "loc"), [

@@ -20,6 +20,7 @@ from calibrators.fit import fit_profile
 from calibrators.io.arrow_batch import ARROW_STREAM, write_stream
 from calibrators.profile import CalibrationProfile
 from calibrators.synthetic import synthetic_dump
+from tests.app.arrow_compare import assert_same_floats
 
 CAL = "/v1/calibrate"
 ARROW = {"content-type": ARROW_STREAM}
@@ -111,15 +112,7 @@ def test_arrow_and_json_give_the_same_floats(client, dump, nested):
     body = _json(client, "hyp", [_detection(dump, i) for i in range(n)])
     assert body.status_code == 200, body.text
     dets = body.json()["frames"][0]["detections"]
-    for column in ("score", "score_raw", "distance"):
-        assert table[column].to_pylist() == [d[column] for d in dets], column
-    assert [np.ravel(c).tolist() for c in table["covariance"].to_pylist()] == [
-        np.ravel(d["covariance"]).tolist() for d in dets]
-    for level in ("0.5", "0.9"):
-        arrow = table[f"ellipse_{level}"].to_pylist()
-        assert [(e["semi_major"], e["semi_minor"], e["angle"]) for e in arrow] == [
-            (d["ellipses"][level]["semi_major"], d["ellipses"][level]["semi_minor"],
-             d["ellipses"][level]["angle"]) for d in dets]
+    assert_same_floats(table, dets)
 
 
 def _without(det: dict, *keys: str) -> dict:
