@@ -32,6 +32,11 @@ def _box9(box: Sequence[float]) -> list[float]:
     return list(box) if len(box) == len(BOX_FIELDS) else [*box, 0.0, 0.0]
 
 
+def _form(shape: tuple[int, bool, int]) -> str:
+    layers, cov, hyp = shape
+    return (f"{layers} layer(s), {'a' if cov else 'no'} covariance, {hyp} box hypotheses")
+
+
 def _label(label: str | int, classes: Sequence[str], loc: list[str | int]) -> int:
     if isinstance(label, int):
         if label >= len(classes):
@@ -49,6 +54,8 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
     detection has no logits, or the detections disagree in layers or covariance."""
     prof = loaded.profile
     logits, boxes, covs, det_frame = [], [], [], []
+    hyp_boxes: list[list[list[float]]] = []
+    hyp_scores: list[list[float]] = []
     gt_boxes, gt_labels, gt_frame = [], [], []
     ego = np.zeros((len(frames), 3))
     shape: tuple[int, bool] | None = None
@@ -70,15 +77,22 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
             if len(z) not in (1, n_layers) or len(b) not in (1, n_layers):
                 raise RequestError([*loc, "layer_boxes"], f"layer_logits has {len(z)} layers "
                                    f"but layer_boxes {len(b)}")
-            this = (n_layers, det.covariance is not None)
+            n_hyp = 0 if det.hypothesis_boxes is None else len(det.hypothesis_boxes)
+            if n_hyp and len(det.hypothesis_scores or ()) != n_hyp:
+                raise RequestError([*loc, "hypothesis_scores"], f"hypothesis_scores has "
+                                   f"{len(det.hypothesis_scores or ())} scores but "
+                                   f"hypothesis_boxes {n_hyp} boxes")
+            this = (n_layers, det.covariance is not None, n_hyp)
             if shape is None:
                 shape = this
             elif this != shape:
                 raise RequestError(loc, f"every detection of a feedback request must have the "
-                                        f"same number of layers and all or none a covariance; "
-                                        f"this one has {this[0]} layer(s), "
-                                        f"{'a' if this[1] else 'no'} covariance, the first "
-                                        f"{shape[0]}, {'a' if shape[1] else 'no'} covariance")
+                                        f"same number of layers, all or none a covariance and "
+                                        f"the same number of box hypotheses; this one has "
+                                        f"{_form(this)}, the first {_form(shape)}")
+            if n_hyp:
+                hyp_boxes.append(det.hypothesis_boxes)
+                hyp_scores.append(det.hypothesis_scores)
             logits.append([z[0]] * n_layers if len(z) == 1 else z)
             boxes.append([b[0]] * n_layers if len(b) == 1 else b)
             if det.covariance is not None:
@@ -103,7 +117,9 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
             gt_labels=np.asarray(gt_labels, dtype=np.int64),
             gt_boxes=np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 9),
             ego_translation=ego, det_cov=np.asarray(covs, dtype=np.float64) if covs else None,
-            cov_dims=tuple(prof.cov_dims))
+            cov_dims=tuple(prof.cov_dims),
+            det_hyp_boxes=np.asarray(hyp_boxes, dtype=np.float64) if hyp_boxes else None,
+            det_hyp_scores=np.asarray(hyp_scores, dtype=np.float64) if hyp_boxes else None)
     except ValueError as exc:
         raise RequestError(["body", "frames"], f"profile {loaded.record.ref}: {exc}") from None
 

@@ -186,3 +186,22 @@ def test_old_profiles_still_serve_and_ignore_hypotheses(client, dump):
     assert a.status_code == b.status_code == 200, a.text
     assert a.json()["frames"][0]["detections"][0]["covariance"] == \
         b.json()["frames"][0]["detections"][0]["covariance"]
+
+
+def test_feedback_with_hypotheses_scores_a_hypotheses_profile(client, dump):
+    """JSON feedback carrying the box hypotheses is matched and scored for a profile whose
+    only covariance source is `hypotheses` (coverage of its served levels measured)."""
+    from tests.app.feedback_frames import feedback_frames
+
+    admin = {"Authorization": "Bearer " + "t" * 32}
+    frames = feedback_frames(dump, cov=False)
+    r = client.post("/v1/feedback", headers=admin, json={"profile": "hyp", "frames": frames})
+    assert r.status_code == 200, r.text
+    health = client.get("/v1/profiles/hyp/health").json()
+    assert health["window"]["frames"] == len(frames)
+    overall = {c["level"]: c["coverage"] for c in health["window"]["coverage"]["overall"]}
+    assert abs(overall[0.9] - 0.9) < 0.05 and abs(overall[0.5] - 0.5) < 0.07, overall
+    bad = [dict(f, detections=[{k: v for k, v in d.items() if k != "hypothesis_scores"}
+                               for d in f["detections"]]) for f in frames[:1]]
+    r = client.post("/v1/feedback", headers=admin, json={"profile": "hyp", "frames": bad})
+    assert r.status_code == 422
