@@ -71,6 +71,9 @@ def _train_options(tr: argparse.ArgumentParser) -> None:
                     help="train a deep sub-ensemble head: freeze the trunk of this weights "
                          "file and train a fresh decoder head on it (recipe: "
                          "SUB_ENSEMBLE_RECIPE, e.g. --out detectors/weights/lidar_dse1.pt)")
+    tr.add_argument("--model", action="append", default=[], metavar="KEY=VALUE",
+                    help="override a scalar field of the sensor's architecture (e.g. "
+                         "d_model=96); repeatable; a resumed run must pass the same")
     tr.add_argument("--quiet", action="store_true", help="no progress bar")
 
 
@@ -117,8 +120,13 @@ def run_train(args: argparse.Namespace) -> int:
     run = Path(args.run_dir) if args.run_dir else Path("runs") / args.sensor
     if args.resume and not (run / "ckpt.pt").exists():
         raise ValueError(f"--resume given but there is no checkpoint at {run / 'ckpt.pt'}")
+    model = None
+    if args.model:
+        from detectors.registry import config_with
+
+        model = config_with(args.sensor, args.model)
     result = train(cfg, run_dir=run, resume=not args.fresh, weights_out=args.out,
-                   progress=not args.quiet)
+                   progress=not args.quiet, model_config=model)
     losses = ", ".join(f"{k} {v:.4f}" for k, v in result.final_losses.items())
     print(f"trained {args.sensor}: {result.steps} steps in {result.wall_s / 60:.1f} min; "
           f"final losses (mean of last 100 steps): {losses}")

@@ -9,6 +9,8 @@ with `weights_only=True`, and the model is returned in eval mode. No download ev
 from __future__ import annotations
 
 import json
+from collections.abc import Sequence
+from dataclasses import fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -68,6 +70,28 @@ def detector_config(name: str) -> DetectorConfig:
 
     return DetectorConfig(sensor=name, features=tuple(FEATURES[name]), classes=tuple(CLASSES),
                           **_SENSOR_OVERRIDES[name])
+
+
+def config_with(name: str, overrides: Sequence[str]) -> DetectorConfig:
+    """`detector_config(name)` with `KEY=VALUE` overrides of its scalar fields (int, float,
+    str: `d_model=96`, `token_stride=4`, `head=unified`), for trying an architecture without
+    editing the registry; a ValueError names a key that is not a scalar field or a value of
+    the wrong type."""
+    base = detector_config(name)
+    kinds = {f.name: type(getattr(base, f.name)) for f in fields(base)}
+    changes: dict[str, Any] = {}
+    for text in overrides:
+        key, sep, value = text.partition("=")
+        kind = kinds.get(key)
+        if not sep or kind not in (int, float, str) or key in ("sensor",):
+            scalars = sorted(k for k, t in kinds.items() if t in (int, float, str)
+                             and k != "sensor")
+            raise ValueError(f"--model takes KEY=VALUE with KEY one of {scalars}, got {text!r}")
+        try:
+            changes[key] = kind(value)
+        except ValueError:
+            raise ValueError(f"--model {key} must be {kind.__name__}, got {value!r}") from None
+    return replace(base, **changes)
 
 
 def weights_path(name: str) -> Path:
