@@ -1,25 +1,29 @@
 """The Gaussian NLL of depth scaling as a function of `k`, exact (`_Terms`) and binned
-(`_Binned`), and the bounded Brent search on it (`_fit_k`); used by `DepthScaler` and
-`ShrinkageDepthScaler`. The math is in the docstring of `calibrators.depth`.
+(`_Binned`), on the grid of `calibrators.depth_grid`, searched by `calibrators.depth_search`
+(`_fit_k`); used by `DepthScaler` and `ShrinkageDepthScaler`. The math is in the docstring
+of `calibrators.depth`.
 """
 
 from __future__ import annotations
 
-import warnings
-from collections.abc import Hashable
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from calibrators._spectral import _spectral, _spectral_2x2
+from calibrators.depth_grid import (  # noqa: F401
+    _BINS,
+    _MANTISSA_BITS,
+    _OCTAVES,
+    _bin_key,
+    _log_bin,
+    _log_bin_low,
+    _raw_key,
+)
+from calibrators.depth_search import _brent, _fit_k  # noqa: F401  (depth.py, shrinkage.py, tests)
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
-_WIDEN = 100.0  # an optimum at the upper bound is searched again once up to 100 x the bound
 _CHUNK = 1 << 15  # samples per block of the NLL and binning loops: buffers stay in the cache
-_MANTISSA_BITS = 9  # bins of a = λ/d per octave: 2**9, a relative width <= 2e-3
-_OCTAVES = 64  # octaves of a below its maximum that the grid covers
-_BINS = _OCTAVES << _MANTISSA_BITS  # bins per class
 _U64_MAX = int(np.iinfo(np.uint64).max)
 
 
@@ -370,92 +374,9 @@ class _GridScan:
         return low, top - low + 1, plain
 
 
-def _bin_key(a: np.ndarray, low: int, n_bins: int, plain: bool, out: np.ndarray
-             ) -> np.ndarray:
-    """The bins of `a >= 0` on the grid `(low, B, plain)` of `_key_grid` into `out` (int64,
-    the shape of `a`), as `_log_bin_low` gives them: `1 + raw key - low` floored at 1, 0 for
-    `a = 0`; only the raw key where `plain` (the caller adds `1 - low`)."""
-    if not n_bins:
-        out.fill(0)
-        return out
-    bits = a.view(np.int64)
-    np.right_shift(bits, 52 - _MANTISSA_BITS, out=out)
-    if plain:
-        return out
-    out -= low - 1
-    np.maximum(out, 1, out=out)
-    # a = 0 has bits 0, so this sets its bin to 0; for a > 0 (bits >= 1) the bin is <= bits
-    np.minimum(out, bits, out=out)
-    return out
-
-
 def _binned(terms: _Terms, codes: np.ndarray, n_groups: int) -> tuple[list[_Binned], _Binned]:
     """`_Binned` statistics of every group `g` (`codes [N] == g`) and of all samples pooled,
     on one logarithmic grid of `a = λ/d` (`_log_bin`)."""
     return BinSums.build(terms, codes, n_groups).finish()
 
 
-def _log_bin(a: np.ndarray) -> tuple[np.ndarray, int]:
-    """Bins of the floats `a >= 0` (any shape): `(bin [same shape], B)` with bins `1 .. B` for
-    `a > 0` (increasing with `a`, B <= `_BINS`) and bin 0 for `a == 0`; no logarithm taken.
-
-    The bits of a positive float64 read as an int64 grow with its value: dropping all but the
-    top `_MANTISSA_BITS` mantissa bits splits every octave into `2**_MANTISSA_BITS` equal
-    bins (relative width <= 2**-_MANTISSA_BITS). The grid spans the observed `a`, at most
-    `_OCTAVES` octaves below the largest; anything smaller shares the lowest bin (such `a` are
-    below 1e-19 of the largest, negligible next to any k Brent tries).
-    """
-    key, n_bins, _ = _log_bin_low(a)
-    return key, n_bins
-
-
-def _log_bin_low(a: np.ndarray) -> tuple[np.ndarray, int, int]:
-    """`_log_bin(a)` and the raw key (`_raw_key`) of bin 1 (0 when no `a > 0`)."""
-    key = _raw_key(a)
-    positive = a > 0
-    if not positive.any():
-        return np.zeros(a.shape, dtype=np.int64), 0, 0
-    top = int(key.max())
-    low = max(int(key[positive].min()), top - _BINS + 1)
-    key -= low - 1
-    np.maximum(key, 1, out=key)
-    key[~positive] = 0
-    return key, top - low + 1, low
-
-
-def _raw_key(a: np.ndarray) -> np.ndarray:
-    """The float64 bits of `a` without the low mantissa bits: increasing with `a > 0`."""
-    return a.view(np.int64) >> (52 - _MANTISSA_BITS)
-
-
-def _fit_k(stats: _Binned | _Terms, bounds: tuple[float, float], xtol: float,
-           label: Hashable) -> float:
-    """Minimise `stats.nll` over k in `bounds`: Brent on log k (see `_brent`), widened once if
-    the optimum is at the upper bound, then compared with k = low itself (k = 0 is valid)."""
-    low, high = bounds
-    k, nll = _brent(stats, low, high, xtol)
-    if _at_edge(k, high, xtol):
-        k, nll = _brent(stats, low, high * _WIDEN, xtol)
-        if _at_edge(k, high * _WIDEN, xtol):
-            warnings.warn(f"depth k for class {label!r} is at the search edge {high * _WIDEN}; "
-                          "the residuals may not grow with distance", RuntimeWarning,
-                          stacklevel=3)
-    return float(low) if stats.nll(low) <= nll else float(k)
-
-
-def _at_edge(k: float, high: float, xtol: float) -> bool:
-    return np.log(high) - np.log(k) < 10 * xtol
-
-
-def _brent(stats: _Binned | _Terms, low: float, high: float, xtol: float
-           ) -> tuple[float, float]:
-    """Bounded Brent on log k in [log max(low, 1e-9·high), log high]; `xtol` is on log k.
-
-    Log k reaches the scale of k (1e-3 .. 1 m²/m) in a few steps where a linear search from
-    [0, 25] spends a dozen golden-section steps; values below 1e-9·high are covered by the
-    k = low check in `_fit_k`.
-    """
-    lo = np.log(max(low, 1e-9 * high))
-    result = minimize_scalar(lambda u: stats.nll(float(np.exp(u))), bounds=(lo, np.log(high)),
-                             method="bounded", options={"xatol": xtol})
-    return float(np.exp(result.x)), float(result.fun)
