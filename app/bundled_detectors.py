@@ -23,10 +23,12 @@ class DetectorUnavailable(RuntimeError):
 
 @dataclass(frozen=True)
 class DetectorOutput:
-    """Raw outputs of one frame, queries kept by raw score.
+    """Raw outputs of one frame: the top (query, class) pairs kept by raw score
+    (`detectors.infer`, "topk" decoding: a query may give detections of several classes).
 
-    layer_logits [N, L, C], layer_boxes [N, L, 9], points [P, F] (the input cloud),
-    gt_boxes [G, 9] and gt_labels [G] (empty for uploaded points), classes [C].
+    layer_logits [N, L, C], layer_boxes [N, L, 9] (the detection's query), labels [N] (the
+    class each detection asserts), points [P, F] (the input cloud), gt_boxes [G, 9] and
+    gt_labels [G] (empty for uploaded points), classes [C].
     """
 
     layer_logits: np.ndarray
@@ -35,6 +37,7 @@ class DetectorOutput:
     gt_boxes: np.ndarray
     gt_labels: np.ndarray
     classes: tuple[str, ...]
+    labels: np.ndarray
 
 
 class DetectorService:
@@ -106,7 +109,8 @@ class DetectorService:
         keep = det.scores.numpy() >= min_score
         return DetectorOutput(layer_logits=logits[keep], layer_boxes=boxes[keep], points=cloud,
                               gt_boxes=gt_boxes, gt_labels=gt_labels,
-                              classes=tuple(model.config.classes))
+                              classes=tuple(model.config.classes),
+                              labels=det.labels.numpy()[keep])
 
 
 def detections_of(out: DetectorOutput, loaded: LoadedProfile) -> list[DetectionIn]:
@@ -122,7 +126,8 @@ def detections_of(out: DetectorOutput, loaded: LoadedProfile) -> list[DetectionI
 
         covs = layer_spread(out.layer_boxes, dims=tuple(prof.cov_dims)).tolist()
     logits, boxes = out.layer_logits.tolist(), out.layer_boxes.tolist()
+    labels = out.labels.tolist()
     return [DetectionIn.model_construct(
-        id=i, logits=None, layer_logits=logits[i], scores=None, score=None, label=None,
+        id=i, logits=None, layer_logits=logits[i], scores=None, score=None, label=labels[i],
         box=boxes[i][-1], layer_boxes=boxes[i], covariance=None if covs is None else covs[i])
         for i in range(len(logits))]

@@ -42,6 +42,8 @@ class GroupKey(NamedTuple):
     n_box_layers: int    # L of layer_boxes (0: none given)
     n_hyp_boxes: int     # H of hypothesis_boxes (0: none given)
     n_hyp_scores: int    # H of hypothesis_scores (0: none given; the library checks the pair)
+    labelled: bool       # a label is given (always with score; with logits: the class the
+                         # detection asserts, top-K (query, class) decoding)
 
 
 @dataclass
@@ -164,11 +166,12 @@ def calibrate_frames(loaded: LoadedProfile, frames: Sequence[FrameIn],
 
 def _evidence(det: DetectionIn, at: tuple[int, int, Locate], classes: Sequence[str], mode: str
               ) -> tuple[GroupKey, list, int]:
-    """Group key, class evidence and label index (-1: from the logits) of one detection."""
-    n_logit_layers, label = 0, -1
+    """Group key, class evidence and label index (-1: the arg-max of the logits) of one
+    detection."""
+    n_logit_layers = 0
+    label = -1 if det.label is None else _label_index(det.label, classes, at)
     if det.score is not None:
         kind, evidence = "score", [det.score]
-        label = _label_index(det.label, classes, at)  # type: ignore[arg-type]
     elif det.layer_logits is not None:
         kind, evidence, n_logit_layers = "layer_logits", det.layer_logits, len(det.layer_logits)
     elif det.logits is not None:
@@ -180,7 +183,8 @@ def _evidence(det: DetectionIn, at: tuple[int, int, Locate], classes: Sequence[s
                    0 if det.covariance is None else len(det.covariance),
                    0 if det.layer_boxes is None else len(det.layer_boxes),
                    0 if det.hypothesis_boxes is None else len(det.hypothesis_boxes),
-                   0 if det.hypothesis_scores is None else len(det.hypothesis_scores))
+                   0 if det.hypothesis_scores is None else len(det.hypothesis_scores),
+                   label >= 0)
     return key, evidence, label
 
 
@@ -216,6 +220,8 @@ def _arrays(key: GroupKey, g: _Group, confidence: float) -> dict[str, object]:
     else:   # [N, L, C'] layer logits, or final-layer logits [N, C']
         kwargs["layer_logits" if key.n_logit_layers else "logits"] = np.asarray(
             g.evidence, dtype=np.float64)
+        if key.labelled:
+            kwargs["labels"] = np.asarray(g.labels, dtype=np.int64)
     if key.cov_dim:
         kwargs["covariances"] = np.asarray(g.covariances, dtype=np.float64)
     if key.n_box_layers:

@@ -22,6 +22,7 @@ from app.store import AuditEntry, HealthChunk, HealthRecord, Store
 from calibrators.drift import AlarmRule, DriftMonitor
 from calibrators.dump import Dump
 from calibrators.health import FrameEvidence, HealthCounts, collect_evidence
+from calibrators.scores import predict
 from calibrators.vocab import BOX_FIELDS
 
 #: The alarm rule the service applies.
@@ -56,6 +57,7 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
     logits, boxes, covs, det_frame = [], [], [], []
     hyp_boxes: list[list[list[float]]] = []
     hyp_scores: list[list[float]] = []
+    labels: list[int] = []
     gt_boxes, gt_labels, gt_frame = [], [], []
     ego = np.zeros((len(frames), 3))
     shape: tuple[int, bool] | None = None
@@ -94,6 +96,8 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
                 hyp_boxes.append(det.hypothesis_boxes)
                 hyp_scores.append(det.hypothesis_scores)
             logits.append([z[0]] * n_layers if len(z) == 1 else z)
+            labels.append(-1 if det.label is None else
+                          _label(det.label, prof.classes, [*loc, "label"]))
             boxes.append([b[0]] * n_layers if len(b) == 1 else b)
             if det.covariance is not None:
                 covs.append(det.covariance)
@@ -105,6 +109,11 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
             gt_frame.append(fi)
     n_layers = shape[0] if shape else 1
     width = len(prof.classes) + (1 if prof.score_mode == "softmax" else 0)
+    det_label = None
+    if any(label >= 0 for label in labels):   # given labels; the arg-max where none is
+        final = np.asarray(logits, dtype=np.float64).reshape(-1, n_layers, width)[:, -1]
+        det_label = np.where(np.asarray(labels) >= 0, labels,
+                             predict(final, prof.score_mode)[0]).astype(np.int64)
     try:
         return Dump(
             classes=tuple(prof.classes), score_mode=prof.score_mode,
@@ -119,7 +128,8 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
             ego_translation=ego, det_cov=np.asarray(covs, dtype=np.float64) if covs else None,
             cov_dims=tuple(prof.cov_dims),
             det_hyp_boxes=np.asarray(hyp_boxes, dtype=np.float64) if hyp_boxes else None,
-            det_hyp_scores=np.asarray(hyp_scores, dtype=np.float64) if hyp_boxes else None)
+            det_hyp_scores=np.asarray(hyp_scores, dtype=np.float64) if hyp_boxes else None,
+            det_label=det_label)
     except ValueError as exc:
         raise RequestError(["body", "frames"], f"profile {loaded.record.ref}: {exc}") from None
 

@@ -36,7 +36,7 @@ def apply_profile(dump: Dump, profile: CalibrationProfile, *,
     result's fields."""
     check_profile_fits(dump, profile)
     return profile.calibrate(
-        layer_logits=dump.det_logits, boxes=dump.final_boxes,
+        layer_logits=dump.det_logits, labels=dump.det_label, boxes=dump.final_boxes,
         **source_arrays(dump, profile.cov_source),
         ego_xy=dump.ego_xy(dump.det_frame), ellipse_confidence=ellipse_confidence,
         levels=levels)

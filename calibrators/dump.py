@@ -20,8 +20,14 @@ validates it; every error names the key. Shapes:
                                   (seed 001's multi-hypothesis output), same layout as det_boxes
     det_hyp_scores   [N, H] | None     group score of each hypothesis (summed class
                                   probabilities of the group's classes), >= 0
+    det_label        [N] int | None    the class each detection asserts, index into classes;
+                                  None = the arg-max of its final-layer logits. A detector
+                                  that decodes the top-K (query, class) pairs (DETR3D's and
+                                  PETR's NMS-free coder) gives one query several detections,
+                                  one per class, with the same logits and boxes.
 
-The two hypothesis arrays come together or not at all.
+The two hypothesis arrays come together or not at all. `det_labels` / `det_scores` are the
+label (given or arg-max) and its probability.
 """
 
 from __future__ import annotations
@@ -41,7 +47,7 @@ from calibrators.checks import (
 )
 from calibrators.exceptions import FieldError
 from calibrators.hypotheses import check_hypotheses
-from calibrators.scores import predict
+from calibrators.scores import label_scores, predict
 from calibrators.vocab import BOX_FIELDS, SCORE_MODES
 
 
@@ -63,6 +69,7 @@ class Dump:
     cov_dims: tuple[str, ...] = field(default=("x", "y"))
     det_hyp_boxes: np.ndarray | None = None
     det_hyp_scores: np.ndarray | None = None
+    det_label: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -127,6 +134,11 @@ class Dump:
             check_covariances("det_cov", cov, n=n, dim=len(cov_dims))
             set_(self, "det_cov", cov)
         self._check_hypotheses(n)
+        if self.det_label is not None:
+            label = as_int_array("det_label", self.det_label)
+            check_length("det_label", label, n, "det_logits")
+            check_index("det_label", label, len(classes), "classes")
+            set_(self, "det_label", label)
 
     def _check_hypotheses(self, n: int) -> None:
         """Validate the optional `det_hyp_boxes [N, H, 9]` / `det_hyp_scores [N, H]` pair."""
@@ -162,12 +174,17 @@ class Dump:
 
     @cached_property
     def det_labels(self) -> np.ndarray:
-        """`[N]` predicted class of each detection (arg-max of its final-layer logits)."""
+        """`[N]` class of each detection: `det_label`, else the arg-max of its final-layer
+        logits."""
+        if self.det_label is not None:
+            return self.det_label
         return predict(self.det_logits[:, -1], self.score_mode)[0]
 
     @cached_property
     def det_scores(self) -> np.ndarray:
-        """`[N]` raw (uncalibrated) probability of each detection's predicted class."""
+        """`[N]` raw (uncalibrated) probability of each detection's class."""
+        if self.det_label is not None:
+            return label_scores(self.det_logits[:, -1], self.det_label, self.score_mode)
         return predict(self.det_logits[:, -1], self.score_mode)[1]
 
     @property
@@ -211,6 +228,7 @@ class Dump:
             det_cov=None if self.det_cov is None else self.det_cov[d],
             det_hyp_boxes=None if self.det_hyp_boxes is None else self.det_hyp_boxes[d],
             det_hyp_scores=None if self.det_hyp_scores is None else self.det_hyp_scores[d],
+            det_label=None if self.det_label is None else self.det_label[d],
             gt_frame=new_index[self.gt_frame[g]],
             gt_labels=self.gt_labels[g],
             gt_boxes=self.gt_boxes[g],
@@ -229,7 +247,7 @@ class Dump:
         return replace(self, det_frame=self.det_frame[keep], det_logits=self.det_logits[keep],
                        det_boxes=self.det_boxes[keep], det_cov=take(self.det_cov),
                        det_hyp_boxes=take(self.det_hyp_boxes),
-                       det_hyp_scores=take(self.det_hyp_scores))
+                       det_hyp_scores=take(self.det_hyp_scores), det_label=take(self.det_label))
 
 
 def concat_frames(dumps: list[Dump]) -> Dump:
@@ -242,11 +260,16 @@ def concat_frames(dumps: list[Dump]) -> Dump:
         values = [getattr(d, name) for d in dumps]
         return None if values[0] is None else np.concatenate(values)
 
+    # Labels: given in any part -> given for all (the arg-max where a part has none).
+    labels = None if all(d.det_label is None for d in dumps) else \
+        np.concatenate([d.det_labels for d in dumps])
+
     return Dump(
         classes=first.classes, score_mode=first.score_mode, frame_ids=cat("frame_ids"),
         ego_translation=cat("ego_translation"), cov_dims=first.cov_dims,
         det_frame=np.concatenate([d.det_frame + o for d, o in zip(dumps, offsets, strict=True)]),
         det_logits=cat("det_logits"), det_boxes=cat("det_boxes"), det_cov=cat("det_cov"),
         det_hyp_boxes=cat("det_hyp_boxes"), det_hyp_scores=cat("det_hyp_scores"),
+        det_label=labels,
         gt_frame=np.concatenate([d.gt_frame + o for d, o in zip(dumps, offsets, strict=True)]),
         gt_labels=cat("gt_labels"), gt_boxes=cat("gt_boxes"))

@@ -290,7 +290,7 @@ def _served(dump: Dump, profile: CalibrationProfile, source: str, levels: np.nda
     infinite radius (it covers everything) rather than failing the whole feedback."""
     def calibrate(at: list[float] | None) -> CalibratedDetections:
         return profile.calibrate(
-            layer_logits=dump.det_logits, boxes=dump.final_boxes,
+            layer_logits=dump.det_logits, labels=dump.det_label, boxes=dump.final_boxes,
             **source_arrays(dump, source), ego_xy=dump.ego_xy(dump.det_frame), levels=at)
 
     try:

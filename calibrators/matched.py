@@ -13,7 +13,6 @@ its final decoder layer.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import replace
 
 import numpy as np
 
@@ -106,6 +105,9 @@ def ts_logits(dump: Dump, modulation: bool = False) -> np.ndarray:
     Softmax labels name their target column, so all `C + 1` columns are returned.
     """
     if not modulation:
+        if dump.det_label is not None and dump.score_mode == "sigmoid":
+            # Given labels need not be the arg-max: the fit must see the label's logit.
+            return dump.det_logits[np.arange(dump.n_detections), -1, dump.det_label][:, None]
         return dump.det_logits[:, -1]
     if dump.n_layers < 2:
         raise ValueError(f"modulation needs at least 2 decoder layers, the dump has "
@@ -134,14 +136,7 @@ def tp_residuals(dump: Dump, matched: MatchResult,
 
 def select_detections(dump: Dump, keep: np.ndarray) -> Dump:
     """A dump with only the detections where the boolean `[N]` mask `keep` is True."""
-    keep = np.asarray(keep, dtype=bool)
-    return replace(dump, det_frame=dump.det_frame[keep], det_logits=dump.det_logits[keep],
-                   det_boxes=dump.det_boxes[keep],
-                   det_cov=None if dump.det_cov is None else dump.det_cov[keep],
-                   det_hyp_boxes=None if dump.det_hyp_boxes is None
-                   else dump.det_hyp_boxes[keep],
-                   det_hyp_scores=None if dump.det_hyp_scores is None
-                   else dump.det_hyp_scores[keep])
+    return dump.select_detections(keep)
 
 
 def split_frames(dump: Dump, holdout: float, seed: int) -> tuple[Dump, Dump | None]:

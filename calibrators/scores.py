@@ -3,8 +3,10 @@
 `sigmoid`: logits `[N, C]`, one independent probability per class (focal-loss heads).
 `softmax`: logits `[N, C + 1]`, the last column is no-object; probabilities are the
 first C columns of the softmax over all C + 1.
-A detection's label is the arg-max of its object-class logits and its score that
-class's probability; a temperature never changes the label.
+A detection's label is the arg-max of its object-class logits, unless the detector says
+which class it asserts (DETR3D / PETR decode the top-K (query, class) pairs, so one query
+can give detections of several classes: `label_scores`); its score is that class's
+probability. A temperature never changes the label.
 """
 
 from __future__ import annotations
@@ -34,6 +36,14 @@ def predict(logits: np.ndarray, mode: str, temperature: float = 1.0
     labels = np.argmax(z[:, :n_obj], axis=1).astype(np.int64)
     probs = class_probabilities(z, mode, temperature)
     return labels, probs[np.arange(len(labels)), labels]
+
+
+def label_scores(logits: np.ndarray, labels: np.ndarray, mode: str, temperature: float = 1.0
+                 ) -> np.ndarray:
+    """`[N]` probability of the given `labels [N]` (any class, not only the arg-max) from
+    logits `[N, C']` at temperature `T`."""
+    probs = class_probabilities(logits, mode, temperature)
+    return probs[np.arange(len(probs)), np.asarray(labels, dtype=np.int64)]
 
 
 def _logits(logits: np.ndarray, mode: str) -> np.ndarray:

@@ -2,7 +2,9 @@
 
 Class evidence: `logits [N, C']` (C' = C sigmoid, C + 1 softmax), or `layer_logits [N, L, C']`
 from every decoder layer (the last is the final layer), or raw `scores [N]` with `labels [N]`.
-The label is the arg-max of the raw final layer and never changes. The score is
+The label is the arg-max of the raw final layer, or, with `labels [N]` beside the
+logits, the class each detection asserts (top-K (query, class) decoding: one query can give
+detections of several classes); it never changes. The score is
 `sigmoid/softmax(z / T)` (version 1, and version 2 with the `temperature` method; from a raw
 score, `sigmoid(logit(p) / T)`), or the profile's per-class calibrator of the label's logit
 (`logit(p)` of a raw score; range-conditioned methods use the distance). A profile with
@@ -43,7 +45,13 @@ from calibrators.exceptions import FieldError
 from calibrators.hypotheses import check_hypotheses, hypotheses_covariance
 from calibrators.levels import MAX_LEVELS, check_levels, gaussian_radius
 from calibrators.modulation import modulate_logits
-from calibrators.scores import class_probabilities, label_logit, predict, probability_logit
+from calibrators.scores import (
+    class_probabilities,
+    label_logit,
+    label_scores,
+    predict,
+    probability_logit,
+)
 
 if TYPE_CHECKING:
     from calibrators.conformal import ConformalGroup, ConformalRegions
@@ -199,13 +207,13 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
         if z.shape[1] != want:
             raise FieldError("logits", f"logits has {z.shape[1]} columns but the profile's "
                                        f"{mode} mode with {n_classes} classes needs {want}")
-        pred, raw = predict(z, mode)
-        if labels is not None:
-            given_labels = as_int_array("labels", labels)
-            check_length("labels", given_labels, len(pred), "logits")
-            if not np.array_equal(given_labels, pred):
-                raise FieldError("labels", "labels differ from the arg-max of logits; "
-                                           "pass one of them")
+        if labels is None:
+            pred, raw = predict(z, mode)
+        else:   # the class each detection asserts (top-K (query, class) decoding)
+            pred = as_int_array("labels", labels)
+            check_length("labels", pred, len(z), "logits")
+            check_index("labels", pred, n_classes, "classes")
+            raw = label_scores(z, pred, mode)
         if profile.modulation:
             z = modulate_logits(layers)
         if calibrator is None:

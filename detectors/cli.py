@@ -11,6 +11,7 @@ import sys
 from collections.abc import Callable
 
 from detectors.vocab import (
+    DECODINGS,
     DETECTOR_COV_SOURCES,
     DUMP_COV_SOURCES,
     DUMP_FORMATS,
@@ -88,7 +89,12 @@ def _dump_options(du: argparse.ArgumentParser) -> None:
                     help="ground truth kept: boxes with a lidar or radar point (nuScenes, "
                          "default), with a point of this sensor, or all")
     du.add_argument("--max-detections", type=int, default=None,
-                    help="queries kept per frame, by score (default: all queries)")
+                    help="detections kept per frame, by score (default: as many as the "
+                         "model has queries)")
+    du.add_argument("--decode", choices=DECODINGS, default=DECODINGS[0],
+                    help="topk: the best (query, class) pairs, a query may give several "
+                         "classes (DETR3D/PETR; default); query: one detection per query, "
+                         "its arg-max class")
     du.add_argument("--weights", default=None, help="weights file (default: shipped)")
     du.add_argument("--out", required=True, help="NPZ path, or results JSON for nuscenes "
                     "(the ground truth goes next to it as *_gt.json)")
@@ -153,6 +159,7 @@ def run_dump(args: argparse.Namespace) -> int:
                    file=sys.stderr)
     dump = build_dump(model, seeds, cov_source=args.cov_source,
                       max_detections=args.max_detections, gt_filter=args.gt_filter,
+                      decode=args.decode,
                       progress=(lambda i, n: bar.update(1)) if bar is not None else None)
     if bar is not None:
         bar.close()

@@ -21,6 +21,11 @@ Ground truth (`gt_filter`), as nuScenes evaluation filters it:
 
 Frame ids are `seed{seed:06d}` (the same scene seen by every sensor shares its id).
 
+Detections are read off the queries as `decode` says (`detectors.infer.DECODINGS`): "topk"
+(default) keeps the `max_detections` best (query, class) pairs, so a query whose best class
+is a look-alike also gives its second class, and the dump carries `det_label`; "query"
+keeps one detection per query, its arg-max class.
+
 A detector with group regression heads also fills the optional multi-hypothesis arrays
 `det_hyp_boxes [N, G, 9]` (final layer, one box per group head) and `det_hyp_scores [N, G]`
 (summed class probabilities per group); a unified-head detector leaves them out.
@@ -37,7 +42,7 @@ import torch
 from detectors.infer import detect
 from detectors.model.detector import Detector
 from detectors.uncertainty import attention_spread, layer_covariance
-from detectors.vocab import DUMP_COV_SOURCES, DUMP_FORMATS, GT_FILTERS
+from detectors.vocab import DECODINGS, DUMP_COV_SOURCES, DUMP_FORMATS, GT_FILTERS
 
 
 def frame_id(seed: int) -> str:
@@ -66,32 +71,35 @@ def visible_gt(frame: object, sensor: str, gt_filter: str = "lidar_radar") -> np
 
 def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers",
                max_detections: int | None = None, gt_filter: str = "lidar_radar",
-               attention_top_k: int = 6,
+               attention_top_k: int = 6, decode: str = "topk",
                progress: Callable[[int, int], None] | None = None):  # -> calibrators.Dump
     """Run `model` over the simulated scenes `seeds` and return a `calibrators.dump.Dump`.
 
-    `max_detections` queries are kept per frame, by final-layer score (default: all of them;
-    DETR-style outputs need no NMS).
+    `max_detections` detections are kept per frame, by final-layer score (default: as many
+    as the model has queries; DETR-style outputs need no NMS), decoded as `decode` says.
     """
     from calibrators.dump import Dump
     from detectors.sim import make_frame
 
     if gt_filter not in GT_FILTERS:
         raise ValueError(f"gt_filter must be one of {list(GT_FILTERS)}, got {gt_filter!r}")
+    if decode not in DECODINGS:
+        raise ValueError(f"decode must be one of {list(DECODINGS)}, got {decode!r}")
     if cov_source not in DUMP_COV_SOURCES:
         raise ValueError(f"cov_source must be one of {list(DUMP_COV_SOURCES)}, "
                          f"got {cov_source!r}")
     sensor = model.config.sensor
     max_detections = max_detections or model.config.n_queries
     seeds = [int(s) for s in seeds]
-    det_frame, logits, boxes, covs, hyp_boxes, hyp_scores = [], [], [], [], [], []
+    det_frame, logits, boxes, covs, hyp_boxes, hyp_scores, labels = [], [], [], [], [], [], []
     gt_frame, gt_labels, gt_boxes = [], [], []
     centres = model.token_centres
     floor = torch.eye(2) * model.token_grid.cell ** 2 / 12.0
     for i, seed in enumerate(seeds):
         frame = make_frame(seed, sensor)
         points = torch.from_numpy(np.array(frame.sensor_frame.points, dtype=np.float32))
-        (det,) = list(detect(model, [points], max_detections=max_detections))
+        (det,) = list(detect(model, [points], max_detections=max_detections, decode=decode))
+        labels.append(det.labels.numpy())
         det_frame.append(np.full(len(det.scores), i, dtype=np.int64))
         logits.append(det.layer_logits.numpy())
         boxes.append(det.layer_boxes.numpy())
@@ -129,7 +137,8 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
         det_cov=cat(covs, (2, 2), np.float64) if cov_source != "none" else None,
         cov_dims=("x", "y"),
         det_hyp_boxes=cat(hyp_boxes, (n_groups, 9), np.float32) if grouped else None,
-        det_hyp_scores=cat(hyp_scores, (n_groups,), np.float32) if grouped else None)
+        det_hyp_scores=cat(hyp_scores, (n_groups,), np.float32) if grouped else None,
+        det_label=cat(labels, (), np.int64) if decode == "topk" else None)
 
 
 def write_dump(dump, out: str | Path, fmt: str = "npz") -> list[Path]:

@@ -1,13 +1,21 @@
 """Inference: run a detector over point clouds and keep the per-query outputs that matter.
 
-DETR-style post-processing has no NMS: each query is one candidate; the `max_detections`
-queries with the highest final-layer score (max sigmoid over classes) are kept, with their
-outputs from every decoder layer.
+DETR-style post-processing has no NMS. Two decodings (`DECODINGS`):
+
+- "topk" (DETR3D's and PETR's NMS-free coder, the default): the `max_detections` (query,
+  class) pairs with the highest final-layer sigmoid probability over all Q x C pairs; a query
+  whose best class is a look-alike (trailer for a bus) also gives its second class as a
+  detection of its own, with the same logits and boxes;
+- "query": one detection per query, its arg-max class; the `max_detections` queries with
+  the highest score are kept.
+
+Either way each detection keeps its query's outputs from every decoder layer.
 
 Per frame (K kept queries, L layers, C classes, T tokens):
 
     FrameDetections(layer_logits [K, L, C], layer_boxes [K, L, 9], attention [K, T] (final
-                    layer), scores [K], labels [K], query_index [K],
+                    layer), scores [K], labels [K] (the class each detection asserts),
+                    query_index [K] (repeats under "topk"),
                     hyp_boxes [K, G, 9] | None, hyp_scores [K, G] | None)
 
 `hyp_boxes` / `hyp_scores` (group regression heads only, else None): the final layer's box
@@ -24,6 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from detectors.model.detector import Detector
+from detectors.vocab import DECODINGS
 
 
 @dataclass(frozen=True)
@@ -55,25 +64,32 @@ def enable_mc_dropout(model: nn.Module) -> nn.Module:
     return model
 
 
-def postprocess(outputs: dict[str, Tensor], max_detections: int = 100) -> list[FrameDetections]:
-    """Split a detector output dict into per-frame detections, keeping the top queries."""
+def postprocess(outputs: dict[str, Tensor], max_detections: int = 100,
+                decode: str = "topk") -> list[FrameDetections]:
+    """Split a detector output dict into per-frame detections (`decode`: module docstring)."""
+    if decode not in DECODINGS:
+        raise ValueError(f"decode must be one of {list(DECODINGS)}, got {decode!r}")
     logits = outputs["pred_logits"]  # [L, B, Q, C]
     boxes = outputs["pred_boxes"]  # [L, B, Q, 9]
     attention = outputs["attention"]  # [L, B, Q, T]
     hyp_boxes = outputs.get("pred_group_boxes")  # [L, B, Q, G, 9] (group heads)
     hyp_scores = outputs.get("group_scores")  # [L, B, Q, G]
-    n_layers, batch, n_queries, _ = logits.shape
-    k = min(max_detections, n_queries)
+    n_layers, batch, n_queries, n_classes = logits.shape
     frames = []
     for b in range(batch):
         final = logits[-1, b].sigmoid()  # [Q, C]
-        best, labels = final.max(dim=1)
-        scores, order = best.topk(k)
+        if decode == "topk":
+            scores, pair = final.reshape(-1).topk(min(max_detections, final.numel()))
+            order, labels = pair // n_classes, pair % n_classes
+        else:
+            best, labels = final.max(dim=1)
+            scores, order = best.topk(min(max_detections, n_queries))
+            labels = labels[order]
         frames.append(FrameDetections(
             layer_logits=logits[:, b, order].transpose(0, 1).contiguous(),
             layer_boxes=boxes[:, b, order].transpose(0, 1).contiguous(),
             attention=attention[-1, b, order].contiguous(),
-            scores=scores, labels=labels[order], query_index=order,
+            scores=scores, labels=labels, query_index=order,
             hyp_boxes=None if hyp_boxes is None else hyp_boxes[-1, b, order].contiguous(),
             hyp_scores=None if hyp_scores is None else hyp_scores[-1, b, order].contiguous()))
     return frames
@@ -81,13 +97,13 @@ def postprocess(outputs: dict[str, Tensor], max_detections: int = 100) -> list[F
 
 @torch.no_grad()
 def detect(model: Detector, points: Iterable[Tensor], batch_size: int = 1,
-           max_detections: int = 100) -> Iterator[FrameDetections]:
+           max_detections: int = 100, decode: str = "topk") -> Iterator[FrameDetections]:
     """Run `model` (in whatever mode it is in) over point clouds `[P, F]`, frame by frame."""
     batch: list[Tensor] = []
     for p in points:
         batch.append(torch.as_tensor(p, dtype=torch.float32))
         if len(batch) == batch_size:
-            yield from postprocess(model(batch), max_detections)
+            yield from postprocess(model(batch), max_detections, decode)
             batch = []
     if batch:
-        yield from postprocess(model(batch), max_detections)
+        yield from postprocess(model(batch), max_detections, decode)

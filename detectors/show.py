@@ -37,7 +37,8 @@ def render_frame(model: Detector, seed: int, out: str | Path, min_score: float =
     check_choice("cov_source", cov_source, DETECTOR_COV_SOURCES)
     frame = make_frame(int(seed), model.config.sensor)
     points = np.array(frame.sensor_frame.points, dtype=np.float32)
-    (det,) = list(detect(model, [torch.from_numpy(points)], max_detections=model.config.n_queries))
+    (det,) = list(detect(model, [torch.from_numpy(points)], max_detections=model.config.n_queries,
+                         decode="query"))
     boxes = det.boxes.numpy().astype(np.float64)
     if cov_source == "attention":
         cov = attention_spread(det.attention.double(), model.token_centres.double()).covariance

@@ -1,5 +1,5 @@
 """The detectors' vocabulary, defined once: sensors, splits, the detector's own covariance
-sources, ground-truth filters and dump formats.
+sources, ground-truth filters, decodings and dump formats.
 
 Plain tuples with no imports, so that the `detcal` CLI can offer them as choices without
 loading torch or the simulator. The simulator (`detectors.sim`), the registry, the dump
@@ -26,3 +26,7 @@ DUMP_COV_SOURCES: tuple[str, ...] = (*DETECTOR_COV_SOURCES, "none")
 GT_FILTERS: tuple[str, ...] = ("lidar_radar", "sensor", "none")
 #: File formats `detcal dump` writes: validation dump v1 NPZ, or nuScenes results + GT JSON.
 DUMP_FORMATS: tuple[str, ...] = ("npz", "nuscenes")
+#: How detections are read off a detector's queries (`detectors.infer`; the first is the
+#: default): the best (query, class) pairs, a query may give several classes (DETR3D's and
+#: PETR's NMS-free coder), or one detection per query, its arg-max class.
+DECODINGS: tuple[str, ...] = ("topk", "query")

@@ -100,7 +100,10 @@ class DetectionIn(BaseModel):
         None, min_length=1, description="Per-class probabilities `[C']` in the profile's layout.")
     score: Probability | None = Field(None, description="Score of `label` only (needs `label`).")
     label: str | Annotated[int, Field(ge=0)] | None = Field(
-        None, description="Class name or index; required with `score`.")
+        None, description="Class name or index; required with `score`. With logits (or "
+                          "`layer_logits`, `scores`): the class this detection asserts, "
+                          "default their arg-max (a top-K (query, class) decoder, as DETR3D "
+                          "and PETR use, gives one query a detection per class).")
     box: Row | None = Field(None, description=f"`{_BOX_TEXT}` ({_BOX_WIDTHS[1]} values: no "
                                               "velocity).")
     layer_boxes: list[Annotated[Row, Field(min_length=len(BOX_FIELDS),

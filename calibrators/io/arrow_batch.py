@@ -5,7 +5,9 @@ A request batch has one row per detection:
 
 - `frame_id` (string or integer, required) and `id` (any type, optional): echoed back;
 - class evidence, exactly one of: `logits` (list of floats `[C']`), `layer_logits` (list of
-  lists `[L][C']`), or `score` (float) with `label` (class name or index);
+  lists `[L][C']`), or `score` (float) with `label` (class name or index); with logits a
+  `label` column names the class each detection asserts (default: the arg-max; a top-K
+  (query, class) decoder gives one query a detection per class);
 - `box` (list `[9]` or `[7]`: no velocity) or `layer_boxes` (list of lists `[L][9]`, the last
   is the final box);
 - `covariance` (list `[D·D]`, row-major over the profile's `cov_dims`, optional) and
@@ -116,9 +118,8 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> BatchRequest
     else:
         kwargs["layer_logits"] = _numbers("layer_logits", batch.column("layer_logits"),
                                           (None, None))
-    if "label" in names and evidence[0] != "score":
-        raise FieldError("label", "label goes with score; with logits the label is their "
-                                  "arg-max")
+    if "label" in names and evidence[0] != "score":   # the class each detection asserts
+        kwargs["labels"] = _labels(batch.column("label"), classes)
     if "layer_boxes" in names:
         kwargs["layer_boxes"] = _numbers("layer_boxes", batch.column("layer_boxes"), (None, 9))
     if "box" in names:

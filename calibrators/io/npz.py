@@ -24,7 +24,7 @@ from calibrators.io.atomic import atomic_write
 
 REQUIRED_KEYS = ("classes", "score_mode", "frame_ids", "det_frame", "det_logits", "det_boxes",
                  "gt_frame", "gt_labels", "gt_boxes")
-OPTIONAL_KEYS = ("ego_translation", "det_cov", "cov_dims")
+OPTIONAL_KEYS = ("ego_translation", "det_cov", "cov_dims", "det_label")
 #: Optional too, and only together: the box hypotheses of group regression heads.
 HYPOTHESIS_KEYS = ("det_hyp_boxes", "det_hyp_scores")
 KNOWN_KEYS = REQUIRED_KEYS + OPTIONAL_KEYS + HYPOTHESIS_KEYS
@@ -34,7 +34,7 @@ STRING_KEYS = {"classes": 1, "score_mode": 0, "frame_ids": 1, "cov_dims": 1}  # 
 SHAPES: dict[str, tuple[str | int, ...]] = {
     "det_logits": ("N", "L", "C'"), "det_boxes": ("N", "L", 9), "det_frame": ("N",),
     "cov_dims": ("D",), "det_cov": ("N", "D", "D"), "det_hyp_boxes": ("N", "H", 9),
-    "det_hyp_scores": ("N", "H"), "gt_boxes": ("G", 9), "gt_frame": ("G",),
+    "det_hyp_scores": ("N", "H"), "det_label": ("N",), "gt_boxes": ("G", 9), "gt_frame": ("G",),
     "gt_labels": ("G",), "frame_ids": ("F",), "ego_translation": ("F", 3), "classes": ("C",),
     "score_mode": ()}
 #: Default limit on the inflated size of all arrays together (bytes); `load_dump(max_bytes=)`.
@@ -103,6 +103,8 @@ def save_dump(path: str | os.PathLike[str] | BinaryIO, dump: Dump) -> None:
     if dump.det_hyp_boxes is not None and dump.det_hyp_scores is not None:
         arrays["det_hyp_boxes"] = dump.det_hyp_boxes
         arrays["det_hyp_scores"] = dump.det_hyp_scores
+    if dump.det_label is not None:
+        arrays["det_label"] = dump.det_label
     if hasattr(path, "write"):
         np.savez_compressed(path, **arrays)
         return

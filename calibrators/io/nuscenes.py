@@ -74,12 +74,12 @@ def load_nuscenes(results_path: str | os.PathLike[str],
 
     cov_dims = _class_list("meta.cov_dims", meta["cov_dims"]) if "cov_dims" in meta \
         else ("x", "y")
-    logits, score_mode = _logits(det, classes, meta)
+    logits, score_mode, det_label = _logits(det, classes, meta)
     return Dump(
         classes=classes, score_mode=score_mode, frame_ids=np.array(tokens, dtype=str),
         ego_translation=_ego(det, ref, tokens),
         det_frame=det["frame"], det_logits=logits[:, None, :], det_boxes=det["boxes"][:, None, :],
-        det_cov=_covariances(det, len(cov_dims)), cov_dims=cov_dims,
+        det_cov=_covariances(det, len(cov_dims)), cov_dims=cov_dims, det_label=det_label,
         gt_frame=ref["frame"][keep], gt_labels=ref["label"][keep], gt_boxes=ref["boxes"][keep])
 
 
@@ -284,8 +284,11 @@ def _ego(det: dict, ref: dict, tokens: list[str]) -> np.ndarray | None:
     return None if not ego.any() else ego
 
 
-def _logits(det: dict, classes: tuple[str, ...], meta: dict) -> tuple[np.ndarray, str]:
-    """`[N, C']` logits and the score mode, from detection_logits or from the scores."""
+def _logits(det: dict, classes: tuple[str, ...], meta: dict
+            ) -> tuple[np.ndarray, str, np.ndarray | None]:
+    """`[N, C']` logits, the score mode and the labels when a detection_name is not the
+    arg-max of its detection_logits (a top-K (query, class) decoder: one query, several
+    boxes of different classes), from detection_logits or from the scores."""
     n, c = len(det["label"]), len(classes)
     given = [v is not None for v in det["logits"]]
     if any(given) and not all(given):
@@ -299,20 +302,16 @@ def _logits(det: dict, classes: tuple[str, ...], meta: dict) -> tuple[np.ndarray
         z = logit(np.clip(scores, _SCORE_CLIP, 1 - _SCORE_CLIP))
         out = np.minimum(logit(OTHER_CLASS_PROB), z - 1.0)[:, None] * np.ones((n, c))
         out[np.arange(n), det["label"]] = z
-        return out, "sigmoid"
+        return out, "sigmoid", None
     logits = as_float_array("detection_logits", det["logits"], ndim=2)
     mode = _score_mode(meta, "sigmoid" if logits.shape[1] == c else "softmax")
     want = c + (mode == "softmax")
     if logits.shape[1] != want:
         raise ValueError(f"detection_logits have {logits.shape[1]} entries but {mode} mode with "
                          f"{c} classes needs {want}")
-    arg = np.argmax(logits[:, :c], axis=1)
-    bad = arg != det["label"]
-    if bad.any():
-        k = int(np.argmax(bad))
-        raise ValueError(f"results box {k}: detection_name {classes[det['label'][k]]!r} is not "
-                         f"the arg-max of its detection_logits ({classes[arg[k]]!r})")
-    return logits, mode
+    labels = np.asarray(det["label"], dtype=np.int64)
+    given = None if np.array_equal(np.argmax(logits[:, :c], axis=1), labels) else labels
+    return logits, mode, given
 
 
 def _score_mode(meta: dict, default: str) -> str:

@@ -58,6 +58,7 @@ class ParquetDataset:
     source_sha256: str
     parts: tuple[PartInfo, ...]
     n_hypotheses: int = 0
+    has_label: bool = False   # a `label` column: the class each detection asserts
 
     @property
     def n_columns(self) -> int:
@@ -76,7 +77,8 @@ class ParquetDataset:
                     det_cov=np.zeros((0, d, d)) if self.has_cov else None,
                     cov_dims=self.cov_dims,
                     det_hyp_boxes=np.zeros((0, h, 9)) if h else None,
-                    det_hyp_scores=np.zeros((0, h)) if h else None)
+                    det_hyp_scores=np.zeros((0, h)) if h else None,
+                    det_label=np.zeros(0, int) if self.has_label else None)
 
     def frames(self) -> tuple[np.ndarray, np.ndarray | None]:
         """`(frame_ids [F] str, ego_translation [F, 3] | None)` from `frames.parquet`."""
@@ -108,18 +110,20 @@ class ParquetDataset:
         det_file = self.path / "detections" / f"{part.name}.parquet"
         gt_file = self.path / "ground_truth" / f"{part.name}.parquet"
         n_cols, d = self.n_columns, len(self.cov_dims)
+        label = ["label"] if self.has_label else []
         if logits_only:
-            det = _read(det_file, ["frame", "logits"])
+            det = _read(det_file, ["frame", "logits", *label])
             logits = _floats(det, "logits", self.n_layers * n_cols, det_file)
             return self._dump(part, ids, ego, {
                 "det_frame": _frames(det, part, det_file),
                 "det_logits": logits.reshape(-1, self.n_layers, n_cols),
                 "det_boxes": np.zeros((len(logits), self.n_layers, 9)),
+                "det_label": _integers(det, "label", det_file) if label else None,
                 "gt_frame": np.zeros(0, int), "gt_labels": np.zeros(0, int),
                 "gt_boxes": np.zeros((0, 9))})
         h = self.n_hypotheses
         det = _read(det_file, ["frame", "logits", "boxes", *(["cov"] if self.has_cov else []),
-                               *(["hyp_boxes", "hyp_scores"] if h else [])])
+                               *(["hyp_boxes", "hyp_scores"] if h else []), *label])
         gt = _read(gt_file, ["frame", "label", "box"])
         fields: dict[str, Any] = {
             "det_frame": _frames(det, part, det_file),
@@ -135,6 +139,8 @@ class ParquetDataset:
         if h:
             fields["det_hyp_boxes"] = _floats(det, "hyp_boxes", h * 9, det_file).reshape(-1, h, 9)
             fields["det_hyp_scores"] = _floats(det, "hyp_scores", h, det_file)
+        if label:
+            fields["det_label"] = _integers(det, "label", det_file)
         return self._dump(part, ids, ego, fields)
 
     def _dump(self, part: PartInfo, ids: np.ndarray, ego: np.ndarray | None,
@@ -177,7 +183,8 @@ def open_parquet(path: str | os.PathLike[str]) -> ParquetDataset:
             "frame": "int", "logits": ds.n_layers * ds.n_columns, "boxes": ds.n_layers * 9,
             **({"cov": len(ds.cov_dims) ** 2} if ds.has_cov else {}),
             **({"hyp_boxes": ds.n_hypotheses * 9, "hyp_scores": ds.n_hypotheses}
-               if ds.n_hypotheses else {})})
+               if ds.n_hypotheses else {}),
+            **({"label": "int"} if ds.has_label else {})})
         _check_schema(root / "ground_truth" / f"{part.name}.parquet",
                       {"frame": "int", "label": "int", "box": 9})
     return ds
@@ -223,7 +230,8 @@ def _dataset(root: Path, meta: Any) -> ParquetDataset:
         has_cov=get("has_cov", bool), has_ego=get("has_ego", bool), n_frames=n_frames,
         n_detections=get("n_detections", int), n_ground_truth=get("n_ground_truth", int),
         source_sha256=get("source_sha256", str), parts=tuple(parts),
-        n_hypotheses=get("n_hypotheses", int) if "n_hypotheses" in meta else 0)
+        n_hypotheses=get("n_hypotheses", int) if "n_hypotheses" in meta else 0,
+        has_label=get("has_label", bool) if "has_label" in meta else False)
     try:
         ds.empty_dump()   # classes, score mode, layers and cov_dims as a Dump checks them
     except FieldError as exc:

@@ -73,7 +73,7 @@ class ParquetWriter:
                 "cov_dims": list(dump.cov_dims), "n_layers": dump.n_layers,
                 "has_cov": dump.det_cov is not None,
                 "has_ego": dump.ego_translation is not None,
-                "n_hypotheses": dump.n_hypotheses}
+                "n_hypotheses": dump.n_hypotheses, "has_label": dump.det_label is not None}
         if self.head is None:
             self.head = head
         elif head != self.head:
@@ -108,6 +108,8 @@ class ParquetWriter:
         if dump.det_hyp_boxes is not None and dump.det_hyp_scores is not None:
             det["hyp_boxes"] = _fixed_list(dump.det_hyp_boxes[rows], self.dtype)
             det["hyp_scores"] = _fixed_list(dump.det_hyp_scores[rows], self.dtype)
+        if dump.det_label is not None:
+            det["label"] = pa.array(dump.det_label[rows], type=pa.int64())
         pq.write_table(pa.table(det), self.out / "detections" / f"{name}.parquet")
         gt = {"frame": pa.array(gt_frame + offset, type=pa.int64()),
               "label": pa.array(dump.gt_labels[g_rows], type=pa.int64()),

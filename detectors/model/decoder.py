@@ -23,6 +23,9 @@ from typing import NamedTuple
 
 from torch import Tensor, nn
 
+from detectors.model.bev import BEVGrid
+from detectors.model.window_attention import WindowCrossAttention
+
 
 class DecoderOutput(NamedTuple):
     """Updated queries `[B, Q, D]` and head-averaged cross-attention weights `[B, Q, T]`
@@ -35,12 +38,21 @@ class DecoderOutput(NamedTuple):
 class DecoderLayer(nn.Module):
     """Self-attention -> cross-attention (weights returned) -> FFN, each with residual + norm."""
 
-    def __init__(self, d_model: int, n_heads: int, d_ffn: int, dropout: float) -> None:
+    def __init__(self, d_model: int, n_heads: int, d_ffn: int, dropout: float,
+                 window: int = 0, grid: BEVGrid | None = None) -> None:
         super().__init__()
         self.self_attn = nn.MultiheadAttention(d_model, n_heads, dropout=dropout,
                                                batch_first=True)
-        self.cross_attn = nn.MultiheadAttention(d_model, n_heads, dropout=0.0,
-                                                batch_first=True)
+        # window > 0: each query attends to the window x window tokens of `grid` (the token
+        # grid) around its anchor (detectors.model.window_attention); 0: to every token.
+        self.cross_attn: nn.Module
+        if window:
+            if grid is None:
+                raise ValueError("a windowed cross-attention needs the token grid")
+            self.cross_attn = WindowCrossAttention(d_model, n_heads, window, grid)
+        else:
+            self.cross_attn = nn.MultiheadAttention(d_model, n_heads, dropout=0.0,
+                                                    batch_first=True)
         self.ffn = nn.Sequential(nn.Linear(d_model, d_ffn), nn.ReLU(inplace=True),
                                  nn.Dropout(dropout), nn.Linear(d_ffn, d_model))
         self.norm1 = nn.LayerNorm(d_model)
@@ -51,13 +63,21 @@ class DecoderLayer(nn.Module):
         self.drop3 = nn.Dropout(dropout)
 
     def forward(self, query: Tensor, query_pos: Tensor, memory: Tensor,
-                memory_pos: Tensor, need_weights: bool = True) -> DecoderOutput:
+                memory_pos: Tensor, need_weights: bool = True,
+                anchors: Tensor | None = None) -> DecoderOutput:
+        """`anchors [B, Q, 2]` (metres) place a windowed cross-attention's windows."""
         q = query + query_pos
         attended, _ = self.self_attn(q, q, query, need_weights=False)
         query = self.norm1(query + self.drop1(attended))
-        attended, weights = self.cross_attn(query + query_pos, memory + memory_pos, memory,
-                                            need_weights=need_weights,
-                                            average_attn_weights=True)
+        if isinstance(self.cross_attn, WindowCrossAttention):
+            if anchors is None:
+                raise ValueError("a windowed cross-attention needs the query anchors")
+            attended, weights = self.cross_attn(query, query_pos, memory, memory_pos, anchors,
+                                                need_weights=need_weights)
+        else:
+            attended, weights = self.cross_attn(query + query_pos, memory + memory_pos,
+                                                memory, need_weights=need_weights,
+                                                average_attn_weights=True)
         query = self.norm2(query + self.drop2(attended))
         query = self.norm3(query + self.drop3(self.ffn(query)))
         return DecoderOutput(query=query, attention=weights)

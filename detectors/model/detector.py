@@ -96,6 +96,10 @@ class DetectorConfig:
     groups: tuple[tuple[str, ...], ...] = DEFAULT_GROUPS
     # Cross-attention tokens: stride of the token map over the pillar grid (4, 2 or 1).
     token_stride: int = 4
+    # Cross-attention window: 0 attends to every token; W > 0 to the W x W tokens around
+    # each query's anchor (detectors.model.window_attention; with token_stride 1, seed
+    # 000's 0.8 m grid within the forward budget).
+    attn_window: int = 0
     extra: dict[str, Any] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
@@ -104,6 +108,9 @@ class DetectorConfig:
         if self.token_stride not in TOKEN_STRIDES:
             raise ValueError(f"token_stride must be one of {list(TOKEN_STRIDES)}, "
                              f"got {self.token_stride}")
+        if not 0 <= self.attn_window <= self.grid_size // self.token_stride:
+            raise ValueError(f"attn_window must be in [0, {self.grid_size // self.token_stride}]"
+                             f" (tokens per side), got {self.attn_window}")
         if self.head == "group":
             class_groups(self.classes, self.groups)  # every class in exactly one group
 
@@ -153,7 +160,8 @@ class Detector(nn.Module):
             self.pillar_tokens = PillarTokens(self.pillars.out_channels, cfg.d_model)
         self.position = PositionEncoding(cfg.d_model, grid.half_extent)
         self.layers = nn.ModuleList(DecoderLayer(cfg.d_model, cfg.n_heads, cfg.d_ffn,
-                                                 cfg.dropout) for _ in range(cfg.n_layers))
+                                                 cfg.dropout, cfg.attn_window, self.token_grid)
+                                    for _ in range(cfg.n_layers))
         if cfg.head == "group":
             self.class_group: tuple[int, ...] | None = class_groups(cfg.classes, cfg.groups)
             self.heads = nn.ModuleList(
@@ -196,7 +204,8 @@ class Detector(nn.Module):
         preds, attention, anchor_list = [], [], []
         for layer, head in zip(self.layers, self.heads, strict=True):
             query_pos = self.position(anchors)
-            out = layer(query, query_pos, memory, memory_pos, need_weights=need_attention)
+            out = layer(query, query_pos, memory, memory_pos, need_weights=need_attention,
+                        anchors=anchors)
             query = out.query
             pred = head(query, anchors)
             preds.append(pred)

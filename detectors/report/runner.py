@@ -246,7 +246,8 @@ def _keep(outputs: dict, model: object, method: str, max_detections: int, frame:
         query = np.arange(len(logits), dtype=np.int64)
         extra: dict[str, np.ndarray] = {}
     else:
-        (det,) = postprocess(outputs, max_detections)
+        # One detection per query: the passes of every method are merged by query index.
+        (det,) = postprocess(outputs, max_detections, decode="query")
         logits, boxes = det.layer_logits.numpy(), det.layer_boxes.numpy()
         query = det.query_index.numpy().astype(np.int64)
         centres = model.token_centres.double()  # type: ignore[attr-defined]

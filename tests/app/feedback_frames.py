@@ -11,8 +11,9 @@ from calibrators import Dump
 
 
 def feedback_frames(dump: Dump, cov: bool = True) -> list[dict[str, Any]]:
-    """Every frame of `dump` as a feedback frame: final logits and box (and det_cov, and the
-    box hypotheses) of each detection, every ground-truth box with its class name."""
+    """Every frame of `dump` as a feedback frame: final logits and box (and det_cov, the
+    given label and the box hypotheses) of each detection, every ground-truth box with its
+    class name."""
     frames = []
     for f, frame_id in enumerate(dump.frame_ids.tolist()):
         dets = []
@@ -21,6 +22,8 @@ def feedback_frames(dump: Dump, cov: bool = True) -> list[dict[str, Any]]:
                                    "box": dump.det_boxes[i, -1].tolist()}
             if cov and dump.det_cov is not None:
                 det["covariance"] = dump.det_cov[i].tolist()
+            if dump.det_label is not None:
+                det["label"] = dump.classes[int(dump.det_label[i])]
             if dump.det_hyp_boxes is not None:
                 det["hypothesis_boxes"] = dump.det_hyp_boxes[i].tolist()
                 det["hypothesis_scores"] = dump.det_hyp_scores[i].tolist()

@@ -69,7 +69,7 @@ def test_variable_lists_seven_value_boxes_and_label_names_are_accepted():
     ({"logits": pa.array([[1.0, None]] * 4)}, "logits", "null"),
     ({"box": pa.array([[0.0] * 9, None, [0.0] * 9, [0.0] * 9])}, "box", "null at row 1"),
     ({"colour": pa.array(["red"] * 4)}, "colour", "unknown column"),
-    ({"label": pa.array(["car"] * 4)}, "label", "goes with score"),
+    ({"label": pa.array(["lorry"] * 4)}, "label", "unknown class .lorry."),
     ({"frame_id": pa.array([1.5] * 4)}, "frame_id", "strings or integers"),
 ])
 def test_bad_columns_are_field_errors_naming_them(columns, field, words):

@@ -84,9 +84,10 @@ def test_every_missing_key_is_refused(tmp_path, key):
 def test_optional_keys_may_be_absent(tmp_path):
     content = arrays()
     for key in OPTIONAL_KEYS:
-        del content[key]
+        content.pop(key, None)
     dump = load_dump(write(tmp_path / "a.npz", content))
     assert dump.ego_translation is None and dump.det_cov is None and dump.cov_dims == ("x", "y")
+    assert dump.det_label is None
 
 
 def test_unknown_key_is_refused(tmp_path):
