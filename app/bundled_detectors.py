@@ -28,7 +28,8 @@ class DetectorOutput:
 
     layer_logits [N, L, C], layer_boxes [N, L, 9] (the detection's query), labels [N] (the
     class each detection asserts), points [P, F] (the input cloud), gt_boxes [G, 9] and
-    gt_labels [G] (empty for uploaded points), classes [C].
+    gt_labels [G] (empty for uploaded points), classes [C]; a detector with group regression
+    heads adds hyp_boxes [N, H, 9] and hyp_scores [N, H] (None otherwise).
     """
 
     layer_logits: np.ndarray
@@ -38,6 +39,8 @@ class DetectorOutput:
     gt_labels: np.ndarray
     classes: tuple[str, ...]
     labels: np.ndarray
+    hyp_boxes: np.ndarray | None = None
+    hyp_scores: np.ndarray | None = None
 
 
 class DetectorService:
@@ -110,11 +113,16 @@ class DetectorService:
         return DetectorOutput(layer_logits=logits[keep], layer_boxes=boxes[keep], points=cloud,
                               gt_boxes=gt_boxes, gt_labels=gt_labels,
                               classes=tuple(model.config.classes),
-                              labels=det.labels.numpy()[keep])
+                              labels=det.labels.numpy()[keep],
+                              hyp_boxes=None if det.hyp_boxes is None
+                              else det.hyp_boxes.double().numpy()[keep],
+                              hyp_scores=None if det.hyp_scores is None
+                              else det.hyp_scores.double().numpy()[keep])
 
 
 def detections_of(out: DetectorOutput, loaded: LoadedProfile) -> list[DetectionIn]:
-    """Request-shaped detections (per-layer logits and boxes) from raw detector outputs."""
+    """Request-shaped detections (per-layer logits and boxes, the label, and the box
+    hypotheses of a group-head detector) from raw detector outputs."""
     prof = loaded.profile
     if tuple(prof.classes) != out.classes:
         raise RequestError(["body", "profile"],
@@ -127,7 +135,11 @@ def detections_of(out: DetectorOutput, loaded: LoadedProfile) -> list[DetectionI
         covs = layer_spread(out.layer_boxes, dims=tuple(prof.cov_dims)).tolist()
     logits, boxes = out.layer_logits.tolist(), out.layer_boxes.tolist()
     labels = out.labels.tolist()
+    hyp_boxes = None if out.hyp_boxes is None else out.hyp_boxes.tolist()
+    hyp_scores = None if out.hyp_scores is None else out.hyp_scores.tolist()
     return [DetectionIn.model_construct(
         id=i, logits=None, layer_logits=logits[i], scores=None, score=None, label=labels[i],
-        box=boxes[i][-1], layer_boxes=boxes[i], covariance=None if covs is None else covs[i])
+        box=boxes[i][-1], layer_boxes=boxes[i], covariance=None if covs is None else covs[i],
+        hypothesis_boxes=None if hyp_boxes is None else hyp_boxes[i],
+        hypothesis_scores=None if hyp_scores is None else hyp_scores[i])
         for i in range(len(logits))]

@@ -4,14 +4,15 @@ One frame is simulated once and fed to every model that still has to run on it; 
 *method*'s passes are cached as one NPZ per (sensor, split, method) under the cache folder, so
 a re-run of `detcal report` only redoes what changed. Methods:
 
-- `vanilla`: the shipped model in eval mode; the `max_detections` best queries per frame
+- `vanilla`: the report's model (`sensor.report_base`: the shipped one, or the sensor's
+  `_de0.pt`) in eval mode; the `max_detections` best queries per frame
   (final-layer score), with the logits and boxes of every decoder layer and the attention
   covariance C_K (seed 000, top-K attention over the token grid) of every layer;
-- `mcd`: the shipped model with dropout on (`infer.enable_mc_dropout`), `n_members` passes;
+- `mcd`: that model with dropout on (`infer.enable_mc_dropout`), `n_members` passes;
   pass m of scene s runs under `torch.manual_seed(mc_seed(s, m))`, so a pass does not depend
   on the frames before it; all Q queries, final layer only (merged later by query index);
-- `de` / `dse`: one weights file per member (DE: member 0 = the shipped model; DSE: the new
-  heads), all Q queries, final layer only; sub-ensemble members share the shipped trunk, so
+- `de` / `dse`: one weights file per member (DE: member 0 = that model; DSE: the new
+  heads), all Q queries, final layer only; sub-ensemble members share its trunk, so
   the trunk runs once per frame and only the decoder heads run per member
   (`Detector.encode` / `decode`).
 

@@ -81,44 +81,58 @@ class SensorReport:
     markdown: str = ""
 
 
+def report_base(sensor: str) -> Path:
+    """The model the report measures (vanilla, MC dropout, DE member 0, the DSE heads'
+    trunk): `{sensor}_de0.pt` where it exists, else the shipped `{sensor}.pt`.
+
+    A sensor whose shipped model moved on while its deep ensemble did not (lidar: v2 group
+    heads since issue 13, its DE members 1-3 and DSE heads are v1) keeps the model its
+    ensemble was trained with as DE member 0, so that every sampling baseline measures the
+    same detector; docs/report/detectors_v2.md compares the two models."""
+    from detectors.registry import WEIGHTS_DIR, weights_path
+
+    member0 = WEIGHTS_DIR / f"{sensor}_de0.pt"
+    return member0 if member0.exists() else weights_path(sensor)
+
+
 def weights_for(sensor: str, kind: str, n: int) -> tuple[Path, ...] | None:
     """Member weights of `kind` with `n` members, or None if one is missing.
 
-    "de": the shipped model then `{sensor}_de{i}.pt` (i = 1..n-1); "dse": the `n` heads
-    trained on the shipped model's frozen trunk, `{sensor}_dse{i}.pt` (i = 1..n; the thesis's
-    sub-ensemble is made of the new heads only)."""
-    from detectors.registry import WEIGHTS_DIR, weights_path
+    "de": the report's base model (`report_base`) then `{sensor}_de{i}.pt` (i = 1..n-1);
+    "dse": the `n` heads trained on the base model's frozen trunk, `{sensor}_dse{i}.pt`
+    (i = 1..n; the thesis's sub-ensemble is made of the new heads only)."""
+    from detectors.registry import WEIGHTS_DIR
 
     if kind == "de":
-        members = [weights_path(sensor), *(WEIGHTS_DIR / f"{sensor}_de{i}.pt"
-                                           for i in range(1, n))]
+        members = [report_base(sensor), *(WEIGHTS_DIR / f"{sensor}_de{i}.pt"
+                                          for i in range(1, n))]
     else:
         members = [WEIGHTS_DIR / f"{sensor}_dse{i}.pt" for i in range(1, n + 1)]
     return tuple(members) if all(p.exists() for p in members) else None
 
 
 def _check_sub_ensemble(sensor: str, heads: tuple[Path, ...]) -> None:
-    """Sub-ensemble heads must sit on the shipped model's trunk (stale heads after a retrain
-    of the shipped model would measure another model)."""
+    """Sub-ensemble heads must sit on the report base's trunk (stale heads after a retrain
+    of that model would measure another model)."""
     from detectors.registry import build_detector
     from detectors.subensemble import same_trunk
 
-    shipped = build_detector(sensor)
+    base_path = report_base(sensor)
+    base = build_detector(sensor, weights=base_path)
     for path in heads:
-        if not same_trunk(shipped, build_detector(sensor, weights=path)):
-            raise ValueError(f"{path} was not trained on the trunk of the shipped {sensor} "
-                             f"model; retrain it with `detcal train --sensor {sensor} "
-                             f"--base-weights detectors/weights/{sensor}.pt --out {path}`")
+        if not same_trunk(base, build_detector(sensor, weights=path)):
+            raise ValueError(f"{path} was not trained on the trunk of {base_path.name}; "
+                             f"retrain it with `detcal train --sensor {sensor} "
+                             f"--base-weights detectors/weights/{base_path.name} --out {path}`")
 
 
 def build_sensor(sensor: str, options: ReportOptions, log: Log = print) -> SensorReport:
     """The whole report of `sensor` (module docstring)."""
-    from detectors.registry import weights_path
     from detectors.sim import CLASSES, split_seeds
 
     start = time.perf_counter()
     report = SensorReport(sensor)
-    shipped = weights_path(sensor)
+    shipped = report_base(sensor)   # the model every row measures
     if not shipped.exists():
         report.markdown = (f"## {sensor}\n\nNo shipped weights yet "
                            f"(`detectors/weights/{sensor}.pt`): train them with "

@@ -97,10 +97,16 @@ def _header(runs: V2Runs, options: V2Options, command: str, seconds: float) -> l
 
 def _section_ap(runs: V2Runs) -> list[str]:
     return ["## 1. mAP and per-class AP (test)", "",
-            "`detcal dump --split test --frames N` (every query, devkit ground truth) + "
-            "`detcal evaluate`: nuScenes AP, mean over the 0.5 / 1 / 2 / 4 m thresholds.", "",
+            "`detcal dump --split test --frames N` (top-K (query, class) decoding, the "
+            "default; devkit ground truth) + `detcal evaluate`: nuScenes AP, mean over the "
+            "0.5 / 1 / 2 / 4 m thresholds.", "",
             ap_table({_name(runs.group): runs.group.evaluation,
-                      _name(runs.baseline): runs.baseline.evaluation}), ""]
+                      _name(runs.baseline): runs.baseline.evaluation}), "",
+            "With one detection per query, its arg-max class (`detcal dump --decode query`): "
+            f"mAP {runs.group.query_evaluation.mean_ap:.3f} (NDS "
+            f"{runs.group.query_evaluation.nd_score:.3f}) for {_name(runs.group)}, "
+            f"{runs.baseline.query_evaluation.mean_ap:.3f} (NDS "
+            f"{runs.baseline.query_evaluation.nd_score:.3f}) for {_name(runs.baseline)}.", ""]
 
 
 def _section_switches(runs: V2Runs, options: V2Options) -> list[str]:

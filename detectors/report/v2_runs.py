@@ -3,8 +3,9 @@
 `run_model` runs one detector over the first test (and optionally val) scenes and keeps:
 
 - `test`: the dump `detcal dump --split test --frames N` writes (`build_dump` with the
-  command's defaults: every query, `layers` covariance, devkit ground truth) and
-  `evaluation = calibrators.evaluate(test)`, what `detcal evaluate` prints;
+  command's defaults: top-K (query, class) decoding, `layers` covariance, devkit ground
+  truth) and `evaluation = calibrators.evaluate(test)`, what `detcal evaluate` prints;
+  `query_evaluation`: the same with one detection per query (`--decode query`);
 - `outputs`: `groups.collect_outputs` over the same scenes (the `max_detections` best
   queries per frame; `group_boxes [N, L, G, 9]` for a group-head model, else None);
 - `trends`: `groups.attention_trends` of the report runner's vanilla passes (top
@@ -46,6 +47,7 @@ class ModelRun:
     steps: int | None
     test: Dump
     evaluation: EvaluationReport
+    query_evaluation: EvaluationReport
     outputs: GroupOutputs
     trends: list[LayerTrend]
     n_attention_frames: int
@@ -68,6 +70,7 @@ def run_model(role: str, path: Path, test_seeds: Sequence[int], val_seeds: Seque
     say(f"report-v2: {role} ({path}): test dump of {len(test_seeds)} scenes")
     test = build_dump(model, list(test_seeds))
     evaluation = evaluate(test)
+    query_evaluation = evaluate(build_dump(model, list(test_seeds), decode="query"))
     say(f"report-v2: {role}: per-layer outputs")
     outputs = collect_outputs(model, list(test_seeds), max_detections=max_detections)
     say(f"report-v2: {role}: attention passes")
@@ -86,6 +89,7 @@ def run_model(role: str, path: Path, test_seeds: Sequence[int], val_seeds: Seque
     return ModelRun(role=role, path=Path(path), sha256=file_digest(Path(path)), head=cfg.head,
                     token_stride=int(cfg.token_stride),
                     steps=int(steps) if steps is not None else None, test=test,
-                    evaluation=evaluation, outputs=outputs, trends=trends,
+                    evaluation=evaluation, query_evaluation=query_evaluation,
+                    outputs=outputs, trends=trends,
                     n_attention_frames=vanilla.n_frames,
                     token_cell=float(vanilla.token_cell), val=val)

@@ -52,3 +52,43 @@ def test_detect_with_a_given_profile_uses_layer_spread(detect_client):
 def test_detect_points_of_the_wrong_width(detect_client):
     r = detect_client.post("/v1/detect", json={"points": [[0.0, 1.0]], "profile": "layers"})
     assert r.status_code == 422 and "columns" in r.text
+
+
+def test_detect_sends_the_group_heads_hypotheses_and_labels(seeded):
+    """A group-head detector's box hypotheses reach a profile that serves only them (without
+    them it would be a 422), and every detection keeps the class the top-K decoder gave it."""
+    from dataclasses import replace
+
+    import torch
+
+    from app.store import Store
+    from calibrators import fit_profile
+    from calibrators.synthetic import synthetic_dump
+    from detectors.model import Detector
+    from detectors.registry import detector_config
+
+    dump = synthetic_dump(n_frames=20, seed=0, n_hypotheses=6, with_cov=False)
+    store = Store(seeded.sqlalchemy_url, seeded.dumps_dir)
+    store.add_profile("hyp", fit_profile(dump, cov_source="hypotheses",
+                                         other_sources=False).to_json())
+    store.close()
+    app = create_app(seeded)
+    torch.manual_seed(0)
+    model = Detector(replace(detector_config("lidar"), head="group", token_stride=4)).eval()
+    app.state.detectors._models["lidar"] = model
+    with TestClient(app) as c:
+        r = c.post("/v1/detect", json={"sensor": "lidar", "seed": 7, "min_score": 0.0,
+                                       "profile": "hyp"})
+    assert r.status_code == 200, r.text
+    dets = r.json()["frames"][0]["detections"]
+    assert len(dets) == 100
+    raw = [d["score_raw"] for d in dets]
+    assert raw == sorted(raw, reverse=True)
+    # the same pairs straight from the model: (label, raw score) per detection, in order
+    from detectors.infer import detect
+    from detectors.sim import make_frame
+
+    points = torch.from_numpy(make_frame(7, "lidar").sensor_frame.points.astype("float32"))
+    (det,) = list(detect(model, [points], max_detections=100))
+    assert [d["label_index"] for d in dets] == det.labels.tolist()
+    assert raw == pytest.approx(det.scores.double().tolist(), rel=1e-6)

@@ -22,7 +22,7 @@ from detectors.report.rows import (
     vanilla_row,
 )
 from detectors.report.runner import MethodSpec, Passes, Truth, run_split
-from detectors.report.sensor import weights_for
+from detectors.report.sensor import report_base, weights_for
 from detectors.report.tables import main_table, number
 
 FIGURES = ("reliability", "calibration_xy", "residuals", "bev", "attention_spread")
@@ -128,6 +128,12 @@ def test_ensemble_weights_are_found_only_when_every_member_exists(
     (tmp_path / "lidar_dse2.pt").write_bytes(b"x")
     assert weights_for("lidar", "dse", 2) == (tmp_path / "lidar_dse1.pt",
                                               tmp_path / "lidar_dse2.pt")
+    # A shipped model newer than its ensemble: DE member 0 (and the report's base) is de0.
+    assert report_base("lidar") == tmp_path / "lidar.pt"
+    (tmp_path / "lidar_de0.pt").write_bytes(b"x")
+    assert report_base("lidar") == tmp_path / "lidar_de0.pt"
+    assert weights_for("lidar", "de", 2) == (tmp_path / "lidar_de0.pt",
+                                             tmp_path / "lidar_de1.pt")
 
 
 # -- rows on synthetic dumps --------------------------------------------------------------------

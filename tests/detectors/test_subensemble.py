@@ -116,5 +116,11 @@ def test_report_refuses_heads_of_another_trunk(trained: tuple[Path, Path, Path],
     monkeypatch.setattr(registry, "WEIGHTS_DIR", tmp_path)
     shutil.copy(base, tmp_path / "lidar.pt")
     _check_sub_ensemble("lidar", (head,))             # a head on the shipped trunk: fine
-    with pytest.raises(ValueError, match="not trained on the trunk of the shipped lidar"):
+    with pytest.raises(ValueError, match="not trained on the trunk of lidar.pt"):
         _check_sub_ensemble("lidar", (head, other))
+    # A DE member 0 of its own (the shipped model moved on): the heads must sit on it.
+    shutil.copy(base, tmp_path / "lidar_de0.pt")
+    shutil.copy(other, tmp_path / "lidar.pt")
+    _check_sub_ensemble("lidar", (head,))
+    with pytest.raises(ValueError, match="trunk of lidar_de0.pt"):
+        _check_sub_ensemble("lidar", (other,))
