@@ -27,12 +27,13 @@ MAX_WEIGHTS_BYTES = 10 * 1024 * 1024
 # Radar and camera clouds are sparse or smeared in range, so their backbones see the same
 # grid; only the point features differ (taken from detectors.sim.FEATURES).
 _SENSOR_OVERRIDES: dict[str, dict[str, Any]] = {name: {} for name in SENSORS}
-# Lidar v2 (issue 13): group regression heads (seed 001) and cross-attention over the fine
-# map (64 x 64 tokens of 1.6 m; token_stride 1, seed 000's 128 x 128 at 0.8 m, costs ~8x the
-# v1 forward, ~140 ms/frame, over the 50 ms budget; see docs/detectors.md). Weights files
-# carry their own configuration, so the shipped v1 lidar.pt (unified head, 3.2 m tokens)
-# still loads.
-_SENSOR_OVERRIDES["lidar"] = {"head": "group", "token_stride": 2}
+# Lidar v2 (issue 13): group regression heads (seed 001) and cross-attention over seed 000's
+# 128 x 128 grid of 0.8 m tokens, each query attending to the 8 x 8 tokens (6.4 m) around
+# its anchor (dense attention over all 16 384 tokens costs ~140 ms/frame, over the 50 ms
+# budget; see docs/detectors.md). Weights files carry their own configuration, so the v1
+# lidar detector (unified head, 3.2 m tokens; lidar_de0.pt, the report's deep-ensemble
+# member 0) still loads.
+_SENSOR_OVERRIDES["lidar"] = {"head": "group", "token_stride": 1, "attn_window": 8}
 
 # Training recipe per sensor (detectors.train reads it; `detcal train --steps` overrides).
 # 4000 steps x 4 frames: ~26 min for lidar on the shared 2-core machine.
@@ -45,9 +46,9 @@ TRAIN_RECIPES: dict[str, dict[str, Any]] = {name: dict(_RECIPE) for name in _SEN
 TRAIN_RECIPES["lidar"]["extra_objects"] = {
     "truck": 1.0, "bus": 2.0, "trailer": 2.0, "construction_vehicle": 2.0,
     "motorcycle": 2.0, "bicycle": 2.0}
-# Lidar v2: 7000 steps (a v2 step costs ~1.4x a v1 step: ~0.46 s alone on the 2 cores, so
-# ~54 min), the last 1/8 without object sampling (seed 001's fade-out: 5 of its 40 epochs).
-TRAIN_RECIPES["lidar"].update({"steps": 7000, "extra_fade": 0.125})
+# Lidar v2: 6000 steps (a step costs a median 0.56 s on the 2 cores: ~56 min), the last 1/8
+# without object sampling (seed 001's fade-out: 5 of its 40 epochs).
+TRAIN_RECIPES["lidar"].update({"steps": 6000, "extra_fade": 0.125})
 # A deep sub-ensemble head (`detcal train --base-weights`): the trunk is trained already, so
 # a fresh decoder head needs fewer steps; everything else is the sensor's recipe.
 SUB_ENSEMBLE_RECIPE: dict[str, Any] = {"steps": 1500, "warmup": 100}

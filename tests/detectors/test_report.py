@@ -99,7 +99,7 @@ def test_second_run_reads_the_cache(report_run: tuple[Path, Path]) -> None:
     from detectors.sim import split_seeds
 
     _, cache = report_run
-    shipped = weights_path("lidar")
+    shipped = report_base("lidar")
     specs = [MethodSpec("vanilla", (shipped,), 1), MethodSpec("mcd", (shipped,), 2)]
     truth, passes = run_split("lidar", split_seeds("test", 3), specs, cache, "test")
     assert all(p.from_cache for p in passes.values())

@@ -1,6 +1,7 @@
 """`detcal report-v2` (issue 13 item 4): the page's tables equal the library's outputs.
 
-Real runs on 2 test + 2 val scenes: the baseline is the shipped v1 lidar model; the "group"
+Real runs on 2 test + 2 val scenes: the baseline is the v1 lidar model (`lidar_de0.pt`, the
+report's base since v2 shipped as `lidar.pt`); the "group"
 model is the v1 trunk and class heads with freshly initialised, perturbed group box heads
 (seed 0): true positives and a hypotheses spread to fit section 5 on, no trained v2 file.
 """
@@ -17,7 +18,7 @@ import torch
 from calibrators import evaluate, load_dump, match_dump, metrics, tp_residuals
 from calibrators.hypotheses import hypotheses_covariance
 from detectors.model import Detector
-from detectors.registry import load_weights, save_weights, weights_path
+from detectors.registry import load_weights, save_weights
 from detectors.report.attention import AttentionStats, Binned, binned
 from detectors.report.groups import (
     LayerTrend,
@@ -26,6 +27,7 @@ from detectors.report.groups import (
     inter_group_std,
     per_layer,
 )
+from detectors.report.sensor import report_base
 from detectors.report.tables import number
 from detectors.report.v2 import V2Options, V2Runs, measure_v2, v2_page
 from detectors.report.v2_cov import SourceRows, SourceSkip, source_rows, source_table
@@ -39,7 +41,7 @@ N_TEST, N_VAL = 2, 2
 def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[V2Runs, V2Options, str]:
     torch.set_num_threads(1)
     tmp = tmp_path_factory.mktemp("report_v2")
-    v1, _ = load_weights(weights_path("lidar"))
+    v1, _ = load_weights(report_base("lidar"))
     torch.manual_seed(0)
     group = Detector(replace(v1.config, head="group"))
     shapes = group.state_dict()
@@ -50,7 +52,7 @@ def report(tmp_path_factory: pytest.TempPathFactory) -> tuple[V2Runs, V2Options,
             if ".boxes." in name:
                 p.add_(0.05 * torch.randn_like(p))
     group_path = save_weights(group.eval(), tmp / "group.pt", {"steps": 7})
-    options = V2Options(weights=group_path, baseline=weights_path("lidar"),
+    options = V2Options(weights=group_path, baseline=report_base("lidar"),
                         test_frames=N_TEST, val_frames=N_VAL, cache=tmp / "cache")
     runs = measure_v2(options)
     return runs, options, v2_page(runs, options, "detcal report-v2 (test)", 1.0)
