@@ -48,6 +48,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ex.add_argument("--input-dtype", default="float64",
                     help="dtype of the ONNX graph's float inputs, float64 or float32 (default: "
                          "%(default)s; the graph computes in float64 either way)")
+    ex.add_argument("--labels", action="store_true",
+                    help="take a labels [N] int64 input after the logits: the class each "
+                         "detection asserts (top-K (query, class) decoding; default: the "
+                         "arg-max of the logits)")
     ex.add_argument("--data-dir", help="service data directory holding the profile store "
                                        "(default: DETCAL_DATA_DIR or ./data)")
     ex.set_defaults(func=run_export)
@@ -64,7 +68,7 @@ def run_export(args: argparse.Namespace) -> int:
     profile, name = _profile(args.profile, args.data_dir)
     meta = export_profile(profile, args.out, args.format, cov_source=args.cov_source,
                           levels=args.levels, layer_logits=args.layer_logits,
-                          input_dtype=args.input_dtype)
+                          input_dtype=args.input_dtype, labels=args.labels)
     print(f"wrote {args.out}: {args.format} graph of {name} (cov_source {meta['cov_source']}, "
           f"levels {meta['levels']}); inputs {', '.join(meta['inputs'])}; outputs "
           f"{', '.join(meta['outputs'])}", file=sys.stderr)

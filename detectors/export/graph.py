@@ -56,6 +56,7 @@ from detectors.export.scores import (
     Modulation,
     Platt,
     TemperatureScores,
+    given_raw,
     labels_and_raw,
 )
 
@@ -91,14 +92,20 @@ class CalibrationGraph(nn.Module):
         self.input_names, self.output_names, self.metadata = input_names, output_names, metadata
 
     def calibrate(self, logits: Tensor, boxes: Tensor, ego_xy: Tensor,
-                  covariances: Tensor | None) -> dict[str, Tensor]:
-        """The outputs of the module docstring from the inputs (any float dtype)."""
+                  covariances: Tensor | None, given: Tensor | None = None
+                  ) -> dict[str, Tensor]:
+        """The outputs of the module docstring from the inputs (any float dtype); `given`
+        `[N]` int64: the class each detection asserts (default: the arg-max)."""
         z_in = logits.to(torch.float64)
         box_in = boxes.to(torch.float64)
         ego = ego_xy.to(torch.float64)
         final = z_in[:, -1] if self.layer_logits else z_in
         box = box_in[:, -1] if self.layer_boxes else box_in
-        labels, raw = labels_and_raw(final, self.softmax)
+        if given is None:
+            labels, raw = labels_and_raw(final, self.softmax)
+        else:
+            labels = given.to(torch.int64)
+            raw = given_raw(final, labels, self.softmax)
         z = final
         if self.modulation is not None:
             z = self.modulation(z_in)
@@ -157,14 +164,41 @@ class _GraphWithHypotheses(CalibrationGraph):
         return self.calibrate(logits, boxes, ego_xy, self.hypotheses(hyp_boxes, hyp_scores))
 
 
+class _LabelledGraph(CalibrationGraph):
+    """`_Graph` with the `labels [N]` input (the class each detection asserts)."""
+
+    def forward(self, logits: Tensor, labels: Tensor, boxes: Tensor, ego_xy: Tensor
+                ) -> dict[str, Tensor]:
+        return self.calibrate(logits, boxes, ego_xy, None, labels)
+
+
+class _LabelledGraphWithCovariances(CalibrationGraph):
+    """`_GraphWithCovariances` with the `labels [N]` input."""
+
+    def forward(self, logits: Tensor, labels: Tensor, boxes: Tensor, ego_xy: Tensor,
+                covariances_raw: Tensor) -> dict[str, Tensor]:
+        return self.calibrate(logits, boxes, ego_xy, covariances_raw, labels)
+
+
+class _LabelledGraphWithHypotheses(_GraphWithHypotheses):
+    """`_GraphWithHypotheses` with the `labels [N]` input."""
+
+    def forward(self, logits: Tensor, labels: Tensor, boxes: Tensor,  # type: ignore[override]
+                ego_xy: Tensor, hyp_boxes: Tensor, hyp_scores: Tensor) -> dict[str, Tensor]:
+        return self.calibrate(logits, boxes, ego_xy, self.hypotheses(hyp_boxes, hyp_scores),
+                              labels)
+
+
 def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
-                levels: Sequence[float] = (0.95,), layer_logits: bool | None = None
-                ) -> CalibrationGraph:
+                levels: Sequence[float] = (0.95,), layer_logits: bool | None = None,
+                labels: bool = False) -> CalibrationGraph:
     """The graph of `profile` for covariance source `cov_source` (default: the profile's own;
     any of `profile.served_sources`) with regions at `levels`. `layer_logits`: take the
     logits of every decoder layer `[N, L, C']` (default, and required, when the profile
-    modulates) instead of the final layer's `[N, C']`. Raises `ExportError` naming what
-    cannot be exported."""
+    modulates) instead of the final layer's `[N, C']`. `labels`: take a `labels [N]` int64
+    input after the logits, the class each detection asserts (a top-K (query, class)
+    decoder's detections; without it the label is the arg-max). Raises `ExportError` naming
+    what cannot be exported."""
     if not isinstance(profile, CalibrationProfile):
         raise ExportError(f"profile must be a CalibrationProfile, got {type(profile).__name__}")
     source = profile.cov_source if cov_source is None else cov_source
@@ -187,7 +221,7 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
               if source == "layers" else None)
     regions, groups = _regions(profile, stage, wanted, dims)
     has_xy = regions is not None
-    inputs = ["layer_logits" if layer_logits else "logits",
+    inputs = ["layer_logits" if layer_logits else "logits", *(["labels"] if labels else []),
               "layer_boxes" if source == "layers" else "boxes", "ego_xy",
               *(["covariances_raw"] if source == "given" else []),
               *(["hyp_boxes", "hyp_scores"] if source == "hypotheses" else [])]
@@ -203,14 +237,14 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
         "cov_method": stage.cov_method, "cov_dims": list(dims),
         "region_method": stage.region_method if has_xy else None,
         "levels": wanted if has_xy else [], "region_groups": groups,
-        "inputs": inputs, "outputs": outputs,
+        "labels_input": bool(labels), "inputs": inputs, "outputs": outputs,
     }
     extra: dict[str, Any] = {}
-    cls: type[CalibrationGraph] = _Graph
+    cls: type[CalibrationGraph] = _LabelledGraph if labels else _Graph
     if source == "given":
-        cls = _GraphWithCovariances
+        cls = _LabelledGraphWithCovariances if labels else _GraphWithCovariances
     elif source == "hypotheses":
-        cls = _GraphWithHypotheses
+        cls = _LabelledGraphWithHypotheses if labels else _GraphWithHypotheses
         extra["hypotheses"] = HypothesesSpread([BOX_INDEX[d] for d in dims],
                                                [d == "yaw" for d in dims])
     return cls(scores, Modulation() if profile.modulation else None, spread,

@@ -36,6 +36,11 @@ def pick(values: Tensor, labels: Tensor) -> Tensor:
     return torch.gather(values, 1, labels.unsqueeze(1)).squeeze(1)
 
 
+def given_raw(z: Tensor, labels: Tensor, softmax: bool) -> Tensor:
+    """Raw scores `[N]` of given `labels [N]` (any class: top-K (query, class) decoding)."""
+    return pick(probabilities(z, softmax), labels)
+
+
 def labels_and_raw(z: Tensor, softmax: bool) -> tuple[Tensor, Tensor]:
     """Labels `[N]` (arg-max of the object columns, first on ties) and raw scores `[N]`."""
     n_obj = z.shape[1] - 1 if softmax else z.shape[1]

@@ -37,7 +37,7 @@ METADATA_KEY = "detcal"
 def export_profile(profile: CalibrationProfile, path: str | os.PathLike[str],
                    format: str = "onnx", *, cov_source: str | None = None,
                    levels: Sequence[float] = (0.95,), layer_logits: bool | None = None,
-                   input_dtype: str = "float64") -> dict[str, Any]:
+                   input_dtype: str = "float64", labels: bool = False) -> dict[str, Any]:
     """Write `profile`'s graph (`build_graph` with these options) to `path` atomically;
     returns its description (the metadata written with it). Raises `ExportError`."""
     if format not in EXPORT_FORMATS:
@@ -46,7 +46,7 @@ def export_profile(profile: CalibrationProfile, path: str | os.PathLike[str],
         raise ExportError(f"input_dtype must be one of {list(INPUT_DTYPES)}, got "
                           f"{input_dtype!r}")
     graph = build_graph(profile, cov_source=cov_source, levels=levels,
-                        layer_logits=layer_logits).eval()
+                        layer_logits=layer_logits, labels=labels).eval()
     meta = json.loads(graph.metadata)
     meta["input_dtype"] = input_dtype if format == "onnx" else "any float"
     data = (_onnx_bytes(graph, INPUT_DTYPES[input_dtype], meta) if format == "onnx"
@@ -74,6 +74,8 @@ def example_inputs(graph: CalibrationGraph, dtype: torch.dtype = torch.float64,
             out.append(torch.eye(dim, dtype=dtype).expand(n, dim, dim).contiguous())
         elif name == "hyp_scores":   # group scores are >= 0
             out.append(torch.rand((n, n_hypotheses), generator=gen, dtype=dtype))
+        elif name == "labels":       # class indices
+            out.append(torch.randint(len(meta["classes"]), (n,), generator=gen))
         else:
             out.append(torch.randn(shapes[name], generator=gen, dtype=dtype))
     return tuple(out)
@@ -95,7 +97,7 @@ def _onnx_bytes(graph: CalibrationGraph, dtype: torch.dtype, meta: dict[str, Any
     hyps = torch.export.Dim("H", min=1)
     axes = {"logits": {0: n}, "layer_logits": {0: n, 1: layers}, "boxes": {0: n},
             "layer_boxes": {0: n, 1: layers}, "ego_xy": {0: n}, "covariances_raw": {0: n},
-            "hyp_boxes": {0: n, 1: hyps}, "hyp_scores": {0: n, 1: hyps}}
+            "hyp_boxes": {0: n, 1: hyps}, "hyp_scores": {0: n, 1: hyps}, "labels": {0: n}}
     params = list(inspect.signature(graph.forward).parameters)   # forward's names
     dynamic = {param: axes[name] for param, name in zip(params, graph.input_names, strict=True)}
     with _quiet():
