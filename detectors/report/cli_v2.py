@@ -41,6 +41,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="markdown page to write (default: %(default)s)")
     p.add_argument("--cache", type=Path, default=Path("runs/report_v2_cache"),
                    help="attention-pass cache folder (default: %(default)s)")
+    p.add_argument("--probe-windows", type=_count(1), nargs="+", default=[], metavar="W",
+                   help="also run the group model (windowed attention) with each wider "
+                        "window W x W at inference: mAP and the attention trend per window")
     p.add_argument("--threads", type=_count(1), default=2,
                    help="torch CPU threads (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
@@ -70,7 +73,7 @@ def run_report_v2(args: argparse.Namespace) -> int:
     options = V2Options(weights=args.weights, baseline=args.baseline,
                         test_frames=args.test_frames, val_frames=args.val_frames,
                         max_detections=args.max_detections, min_score=args.min_score,
-                        cache=args.cache)
+                        cache=args.cache, probe_windows=tuple(args.probe_windows))
 
     def log(message: str) -> None:
         if not args.quiet:
@@ -91,4 +94,5 @@ def _argv_of(args: argparse.Namespace) -> list[str]:
     return ["--weights", str(args.weights), "--baseline", str(args.baseline),
             "--test-frames", str(args.test_frames), "--val-frames", str(args.val_frames),
             "--max-detections", str(args.max_detections), "--min-score", f"{args.min_score:g}",
+            *(["--probe-windows", *map(str, args.probe_windows)] if args.probe_windows else []),
             "--out", str(args.out), "--cache", str(args.cache), "--threads", str(args.threads)]

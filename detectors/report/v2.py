@@ -30,6 +30,7 @@ from detectors.report.v2_tables import (
     trend_summary_table,
     trend_verdict,
 )
+from detectors.report.v2_window import WindowProbe, probe_table, probe_windows
 
 
 @dataclass(frozen=True)
@@ -44,6 +45,7 @@ class V2Options:
     min_score: float = 0.3
     trend: TrendOptions = field(default_factory=TrendOptions)
     cache: Path = Path("runs/report_v2_cache")
+    probe_windows: tuple[int, ...] = ()   # wider windows to run the group model with
 
 
 @dataclass(frozen=True)
@@ -53,6 +55,7 @@ class V2Runs:
     group: ModelRun
     baseline: ModelRun
     sources: list[SourceRows | SourceSkip] | None
+    probes: list[WindowProbe] = field(default_factory=list)
 
 
 def measure_v2(options: V2Options, log: Log | None = None) -> V2Runs:
@@ -70,7 +73,10 @@ def measure_v2(options: V2Options, log: Log | None = None) -> V2Runs:
         if log is not None:
             log("report-v2: group: covariance sources (fit on val, measured on test)")
         sources = source_rows(group.val, group.test)
-    return V2Runs(group=group, baseline=baseline, sources=sources)
+    probes = probe_windows(options.weights, options.probe_windows, test, options.cache,
+                           options.max_detections, options.trend, log) \
+        if options.probe_windows else []
+    return V2Runs(group=group, baseline=baseline, sources=sources, probes=probes)
 
 
 def _name(run: ModelRun) -> str:
@@ -154,7 +160,23 @@ def _section_attention(runs: V2Runs, options: V2Options) -> list[str]:
             "detections; `-` with fewer than 3 such bins or equal medians). Criteria (issue "
             "13): median AS falls from the lowest to the highest IoU bin with ρ ≤ −0.6, rises "
             "with distance with ρ ≥ 0.6, fewer than 20 % rank-deficient C_K.", "",
-            *_trend_block(runs.group, options), *_trend_block(runs.baseline, options)]
+            *_trend_block(runs.group, options), *_trend_block(runs.baseline, options),
+            *_section_window(runs)]
+
+
+def _section_window(runs: V2Runs) -> list[str]:
+    if not runs.probes:
+        return []
+    g = runs.group
+    own = g.attn_window
+    return ["### The window and the trends: the group model with wider windows", "",
+            f"The same weights run with each wider attention window at inference "
+            f"(`--probe-windows`; the model was trained with {own} x {own} tokens): test mAP "
+            f"(top-K) and the final layer's trend as above ({g.n_attention_frames} test frames"
+            f"). A window the weights were not trained with costs mAP; the trend shows where "
+            f"the attention goes when the window lets it spread.", "",
+            probe_table(own, g.evaluation.mean_ap, g.trends[-1], runs.probes, g.token_cell),
+            ""]
 
 
 def _section_sources(runs: V2Runs) -> list[str]:

@@ -53,6 +53,7 @@ class ModelRun:
     n_attention_frames: int
     token_cell: float
     val: Dump | None = None
+    attn_window: int = 0
 
 
 def run_model(role: str, path: Path, test_seeds: Sequence[int], val_seeds: Sequence[int],
@@ -92,4 +93,5 @@ def run_model(role: str, path: Path, test_seeds: Sequence[int], val_seeds: Seque
                     evaluation=evaluation, query_evaluation=query_evaluation,
                     outputs=outputs, trends=trends,
                     n_attention_frames=vanilla.n_frames,
-                    token_cell=float(vanilla.token_cell), val=val)
+                    token_cell=float(vanilla.token_cell), val=val,
+                    attn_window=int(cfg.attn_window))
