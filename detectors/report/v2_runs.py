@@ -18,6 +18,7 @@ from __future__ import annotations
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from calibrators import Dump, EvaluationReport, evaluate
 from detectors.report.groups import GroupOutputs, LayerTrend, attention_trends, collect_outputs
@@ -63,8 +64,6 @@ def run_model(role: str, path: Path, test_seeds: Sequence[int], val_seeds: Seque
     attention passes are cached under `cache / role`."""
     from detectors.dumpwriter import build_dump
     from detectors.registry import load_weights
-    from detectors.report.dumps import vanilla_dump
-
     say = log or (lambda _: None)
     model, meta = load_weights(path)
     cfg = model.config
@@ -75,13 +74,8 @@ def run_model(role: str, path: Path, test_seeds: Sequence[int], val_seeds: Seque
     say(f"report-v2: {role}: per-layer outputs")
     outputs = collect_outputs(model, list(test_seeds), max_detections=max_detections)
     say(f"report-v2: {role}: attention passes")
-    truth, passes = run_split(cfg.sensor, list(test_seeds),
-                              [MethodSpec("vanilla", (Path(path),), 1)], Path(cache) / role,
-                              "test", max_detections)
-    vanilla = passes["vanilla"]
-    trends = attention_trends(vanilla_dump(vanilla, truth, tuple(cfg.classes)),
-                              vanilla.attn_cov, vanilla.token_cell, trend.class_name,
-                              trend.min_score)
+    trends, vanilla = passes_and_trends(cfg, Path(path), test_seeds, Path(cache) / role,
+                                        max_detections, trend)
     val = None
     if val_seeds:
         say(f"report-v2: {role}: val dump of {len(val_seeds)} scenes")
@@ -95,3 +89,18 @@ def run_model(role: str, path: Path, test_seeds: Sequence[int], val_seeds: Seque
                     n_attention_frames=vanilla.n_frames,
                     token_cell=float(vanilla.token_cell), val=val,
                     attn_window=int(cfg.attn_window))
+
+
+def passes_and_trends(cfg: Any, path: Path, seeds: Sequence[int], cache: Path,
+                      max_detections: int, trend: TrendOptions) -> tuple[list[LayerTrend], Any]:
+    """The report runner's (cached) vanilla passes of weights file `path` over `seeds` and
+    their attention trends per layer -> (trends, passes)."""
+    from detectors.report.dumps import vanilla_dump
+
+    truth, passes = run_split(cfg.sensor, list(seeds), [MethodSpec("vanilla", (path,), 1)],
+                              cache, "test", max_detections)
+    vanilla = passes["vanilla"]
+    trends = attention_trends(vanilla_dump(vanilla, truth, tuple(cfg.classes)),
+                              vanilla.attn_cov, vanilla.token_cell, trend.class_name,
+                              trend.min_score)
+    return trends, vanilla

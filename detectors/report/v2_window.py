@@ -16,9 +16,8 @@ from dataclasses import dataclass, replace
 from pathlib import Path
 
 from calibrators import evaluate
-from detectors.report.groups import LayerTrend, attention_trends
-from detectors.report.runner import MethodSpec, run_split
-from detectors.report.v2_runs import TrendOptions
+from detectors.report.groups import LayerTrend
+from detectors.report.v2_runs import TrendOptions, passes_and_trends
 
 Log = Callable[[str], None]
 
@@ -42,7 +41,6 @@ def probe_windows(weights: Path, windows: Sequence[int], test_seeds: Sequence[in
     from detectors.dumpwriter import build_dump
     from detectors.model.detector import Detector
     from detectors.registry import load_weights, save_weights
-    from detectors.report.dumps import vanilla_dump
 
     trend = trend or TrendOptions()
     model, meta = load_weights(weights)
@@ -59,13 +57,7 @@ def probe_windows(weights: Path, windows: Sequence[int], test_seeds: Sequence[in
         wide.eval()
         folder = Path(cache) / f"window{w}"
         path = save_weights(wide, folder / "weights.pt", meta)   # the cache keys on a file
-        truth, passes = run_split(cfg.sensor, list(test_seeds),
-                                  [MethodSpec("vanilla", (path,), 1)], folder, "test",
-                                  max_detections)
-        vanilla = passes["vanilla"]
-        trends = attention_trends(vanilla_dump(vanilla, truth, tuple(cfg.classes)),
-                                  vanilla.attn_cov, vanilla.token_cell, trend.class_name,
-                                  trend.min_score)
+        trends, _ = passes_and_trends(cfg, path, test_seeds, folder, max_detections, trend)
         mean_ap = evaluate(build_dump(wide, list(test_seeds))).mean_ap
         out.append(WindowProbe(window=int(w), metres=float(w * wide.token_grid.cell),
                                mean_ap=mean_ap, trend=trends[-1]))
