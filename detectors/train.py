@@ -63,6 +63,9 @@ class TrainConfig:
     # Fade-out (seed 001, Sec. III-F): the last `extra_fade` fraction of the steps trains
     # without the object sampling, on the world's own class frequencies.
     extra_fade: float = 0.0
+    # Every simulated scene serves this many samples, each augmented anew (see
+    # detectors.data.TrainSamples: the simulation is a third of a lidar step's CPU time).
+    scene_reuse: int = 1
     # Deep sub-ensemble member: copy and freeze the trunk of this weights file, train a
     # fresh decoder head on it (detectors.subensemble). None trains the whole model.
     base_weights: str | None = None
@@ -72,7 +75,7 @@ class TrainConfig:
     workers: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("steps", "batch_size", "threads", "ckpt_every"):
+        for name in ("steps", "batch_size", "threads", "ckpt_every", "scene_reuse"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.workers < 0 or self.warmup < 0:
@@ -184,10 +187,11 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
         if saved["seed"] != cfg.seed or saved["batch_size"] != cfg.batch_size or \
                 saved.get("extra_objects") != cfg.extra_objects or \
                 saved.get("extra_fade", 0.0) != cfg.extra_fade or \
+                saved.get("scene_reuse", 1) != cfg.scene_reuse or \
                 saved.get("base_weights") != cfg.base_weights:
             raise ValueError(f"{ckpt_path} was trained with another seed, batch size, "
-                             "object sampling (or its fade-out) or base model; start fresh "
-                             "(--fresh) or use another run directory")
+                             "object sampling (or its fade-out), scene reuse or base model; "
+                             "start fresh (--fresh) or use another run directory")
         if ckpt.get("model_config", model.config.to_dict()) != model.config.to_dict():
             raise ValueError(f"{ckpt_path} holds another detector architecture (head, token "
                              "stride, widths); start fresh (--fresh) or use another run "
@@ -211,7 +215,8 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
                         model.grid.half_extent, seed=cfg.seed,
                         n_samples=cfg.steps * cfg.batch_size,
                         extra_objects=cfg.extra_objects,
-                        extra_until=cfg.fade_step * cfg.batch_size)
+                        extra_until=cfg.fade_step * cfg.batch_size,
+                        reuse=cfg.scene_reuse)
     sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
     loader = torch.utils.data.DataLoader(
         data, batch_size=cfg.batch_size, sampler=sampler, collate_fn=collate,
