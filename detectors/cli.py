@@ -92,9 +92,10 @@ def _dump_options(du: argparse.ArgumentParser) -> None:
                     help="detections kept per frame, by score (default: as many as the "
                          "model has queries)")
     du.add_argument("--decode", choices=DECODINGS, default=DECODINGS[0],
-                    help="topk: the best (query, class) pairs, a query may give several "
-                         "classes (DETR3D/PETR; default); query: one detection per query, "
-                         "its arg-max class")
+                    help="topk_nms (default): topk, then class-wise circle NMS on the "
+                         "box centres (CenterPoint's radii); topk: the best (query, class) "
+                         "pairs, a query may give several classes (DETR3D/PETR); query: one "
+                         "detection per query, its arg-max class")
     du.add_argument("--weights", default=None, help="weights file (default: shipped)")
     du.add_argument("--out", required=True, help="NPZ path, or results JSON for nuscenes "
                     "(the ground truth goes next to it as *_gt.json)")

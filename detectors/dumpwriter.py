@@ -22,9 +22,11 @@ Ground truth (`gt_filter`), as nuScenes evaluation filters it:
 Frame ids are `seed{seed:06d}` (the same scene seen by every sensor shares its id).
 
 Detections are read off the queries as `decode` says (`detectors.infer.DECODINGS`): "topk"
-(default) keeps the `max_detections` best (query, class) pairs, so a query whose best class
-is a look-alike also gives its second class, and the dump carries `det_label`; "query"
-keeps one detection per query, its arg-max class.
+keeps the `max_detections` best (query, class) pairs, so a query whose best class is a
+look-alike also gives its second class, and the dump carries `det_label`; "topk_nms" (the
+default) then drops a detection whose class was already detected, with a higher score,
+within the class's circle-NMS radius (`detectors.nms`); "query" keeps one detection per
+query, its arg-max class.
 
 A detector with group regression heads also fills the optional multi-hypothesis arrays
 `det_hyp_boxes [N, G, 9]` (final layer, one box per group head) and `det_hyp_scores [N, G]`
@@ -71,12 +73,12 @@ def visible_gt(frame: object, sensor: str, gt_filter: str = "lidar_radar") -> np
 
 def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers",
                max_detections: int | None = None, gt_filter: str = "lidar_radar",
-               attention_top_k: int = 6, decode: str = "topk",
+               attention_top_k: int = 6, decode: str = DECODINGS[0],
                progress: Callable[[int, int], None] | None = None):  # -> calibrators.Dump
     """Run `model` over the simulated scenes `seeds` and return a `calibrators.dump.Dump`.
 
     `max_detections` detections are kept per frame, by final-layer score (default: as many
-    as the model has queries; DETR-style outputs need no NMS), decoded as `decode` says.
+    as the model has queries), decoded as `decode` says.
     """
     from calibrators.dump import Dump
     from detectors.sim import make_frame
@@ -138,7 +140,7 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
         cov_dims=("x", "y"),
         det_hyp_boxes=cat(hyp_boxes, (n_groups, 9), np.float32) if grouped else None,
         det_hyp_scores=cat(hyp_scores, (n_groups,), np.float32) if grouped else None,
-        det_label=cat(labels, (), np.int64) if decode == "topk" else None)
+        det_label=cat(labels, (), np.int64) if decode != "query" else None)
 
 
 def write_dump(dump, out: str | Path, fmt: str = "npz") -> list[Path]:

@@ -1,11 +1,14 @@
 """Inference: run a detector over point clouds and keep the per-query outputs that matter.
 
-DETR-style post-processing has no NMS. Two decodings (`DECODINGS`):
+Three decodings (`DECODINGS`):
 
-- "topk" (DETR3D's and PETR's NMS-free coder, the default): the `max_detections` (query,
-  class) pairs with the highest final-layer sigmoid probability over all Q x C pairs; a query
-  whose best class is a look-alike (trailer for a bus) also gives its second class as a
-  detection of its own, with the same logits and boxes;
+- "topk_nms" (the default): "topk", then class-wise circle NMS on the box centres with
+  CenterPoint's radii (`detectors.nms`): a second query on an object already detected with
+  the same class is dropped, so at most `max_detections` remain;
+- "topk" (DETR3D's and PETR's NMS-free coder): the `max_detections` (query, class) pairs
+  with the highest final-layer sigmoid probability over all Q x C pairs; a query whose best
+  class is a look-alike (trailer for a bus) also gives its second class as a detection of
+  its own, with the same logits and boxes;
 - "query": one detection per query, its arg-max class; the `max_detections` queries with
   the highest score are kept.
 
@@ -25,13 +28,14 @@ multi-hypothesis output of seed 001.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
 
 import torch
 from torch import Tensor, nn
 
 from detectors.model.detector import Detector
+from detectors.nms import circle_nms, class_radii_sq
 from detectors.vocab import DECODINGS
 
 
@@ -65,10 +69,17 @@ def enable_mc_dropout(model: nn.Module) -> nn.Module:
 
 
 def postprocess(outputs: dict[str, Tensor], max_detections: int = 100,
-                decode: str = "topk") -> list[FrameDetections]:
-    """Split a detector output dict into per-frame detections (`decode`: module docstring)."""
+                decode: str = "topk", classes: Sequence[str] | None = None
+                ) -> list[FrameDetections]:
+    """Split a detector output dict into per-frame detections (`decode`: module docstring;
+    "topk_nms" needs the detector's `classes`, for their NMS radii)."""
     if decode not in DECODINGS:
         raise ValueError(f"decode must be one of {list(DECODINGS)}, got {decode!r}")
+    radii_sq = None
+    if decode == "topk_nms":
+        if classes is None:
+            raise ValueError("decode 'topk_nms' needs the detector's classes (NMS radii)")
+        radii_sq = class_radii_sq(classes)
     logits = outputs["pred_logits"]  # [L, B, Q, C]
     boxes = outputs["pred_boxes"]  # [L, B, Q, 9]
     attention = outputs["attention"]  # [L, B, Q, T]
@@ -78,9 +89,12 @@ def postprocess(outputs: dict[str, Tensor], max_detections: int = 100,
     frames = []
     for b in range(batch):
         final = logits[-1, b].sigmoid()  # [Q, C]
-        if decode == "topk":
+        if decode in ("topk", "topk_nms"):
             scores, pair = final.reshape(-1).topk(min(max_detections, final.numel()))
             order, labels = pair // n_classes, pair % n_classes
+            if radii_sq is not None:
+                keep = circle_nms(boxes[-1, b, order, :2], labels, scores, radii_sq)
+                scores, order, labels = scores[keep], order[keep], labels[keep]
         else:
             best, labels = final.max(dim=1)
             scores, order = best.topk(min(max_detections, n_queries))
@@ -97,13 +111,15 @@ def postprocess(outputs: dict[str, Tensor], max_detections: int = 100,
 
 @torch.no_grad()
 def detect(model: Detector, points: Iterable[Tensor], batch_size: int = 1,
-           max_detections: int = 100, decode: str = "topk") -> Iterator[FrameDetections]:
+           max_detections: int = 100, decode: str = DECODINGS[0]
+           ) -> Iterator[FrameDetections]:
     """Run `model` (in whatever mode it is in) over point clouds `[P, F]`, frame by frame."""
+    classes = model.config.classes
     batch: list[Tensor] = []
     for p in points:
         batch.append(torch.as_tensor(p, dtype=torch.float32))
         if len(batch) == batch_size:
-            yield from postprocess(model(batch), max_detections, decode)
+            yield from postprocess(model(batch), max_detections, decode, classes)
             batch = []
     if batch:
-        yield from postprocess(model(batch), max_detections, decode)
+        yield from postprocess(model(batch), max_detections, decode, classes)

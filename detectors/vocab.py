@@ -27,6 +27,7 @@ GT_FILTERS: tuple[str, ...] = ("lidar_radar", "sensor", "none")
 #: File formats `detcal dump` writes: validation dump v1 NPZ, or nuScenes results + GT JSON.
 DUMP_FORMATS: tuple[str, ...] = ("npz", "nuscenes")
 #: How detections are read off a detector's queries (`detectors.infer`; the first is the
-#: default): the best (query, class) pairs, a query may give several classes (DETR3D's and
-#: PETR's NMS-free coder), or one detection per query, its arg-max class.
-DECODINGS: tuple[str, ...] = ("topk", "query")
+#: default): the best (query, class) pairs after class-wise circle NMS; the best pairs, a
+#: query may give several classes (DETR3D's and PETR's NMS-free coder); or one detection per
+#: query, its arg-max class.
+DECODINGS: tuple[str, ...] = ("topk_nms", "topk", "query")

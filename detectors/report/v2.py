@@ -103,8 +103,9 @@ def _header(runs: V2Runs, options: V2Options, command: str, seconds: float) -> l
 
 def _section_ap(runs: V2Runs) -> list[str]:
     return ["## 1. mAP and per-class AP (test)", "",
-            "`detcal dump --split test --frames N` (top-K (query, class) decoding, the "
-            "default; devkit ground truth) + `detcal evaluate`: nuScenes AP, mean over the "
+            "`detcal dump --split test --frames N` (the default decoding: the top-K (query, "
+            "class) pairs, then class-wise circle NMS; devkit ground truth) + "
+            "`detcal evaluate`: nuScenes AP, mean over the "
             "0.5 / 1 / 2 / 4 m thresholds.", "",
             ap_table({_name(runs.group): runs.group.evaluation,
                       _name(runs.baseline): runs.baseline.evaluation}), "",
@@ -172,9 +173,10 @@ def _section_window(runs: V2Runs) -> list[str]:
     return ["### The window and the trends: the group model with wider windows", "",
             f"The same weights run with each wider attention window at inference "
             f"(`--probe-windows`; the model was trained with {own} x {own} tokens): test mAP "
-            f"(top-K) and the final layer's trend as above ({g.n_attention_frames} test frames"
-            f"). A window the weights were not trained with costs mAP; the trend shows where "
-            f"the attention goes when the window lets it spread.", "",
+            f"(default decoding) and the final layer's trend as above "
+            f"({g.n_attention_frames} test frames). A window the weights were not trained "
+            f"with costs mAP; the trend shows where the attention goes when the window lets "
+            f"it spread.", "",
             probe_table(own, g.evaluation.mean_ap, g.trends[-1], runs.probes, g.token_cell),
             ""]
 

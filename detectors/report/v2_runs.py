@@ -3,8 +3,9 @@
 `run_model` runs one detector over the first test (and optionally val) scenes and keeps:
 
 - `test`: the dump `detcal dump --split test --frames N` writes (`build_dump` with the
-  command's defaults: top-K (query, class) decoding, `layers` covariance, devkit ground
-  truth) and `evaluation = calibrators.evaluate(test)`, what `detcal evaluate` prints;
+  command's defaults: top-K (query, class) pairs with class-wise circle NMS, `layers`
+  covariance, devkit ground truth) and `evaluation = calibrators.evaluate(test)`, what
+  `detcal evaluate` prints;
   `query_evaluation`: the same with one detection per query (`--decode query`);
 - `outputs`: `groups.collect_outputs` over the same scenes (the `max_detections` best
   queries per frame; `group_boxes [N, L, G, 9]` for a group-head model, else None);

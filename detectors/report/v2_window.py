@@ -3,10 +3,11 @@
 A windowed cross-attention (`DetectorConfig.attn_window`) bounds where a query can look. To
 see whether the window, and not the data, decides seed 000's trends, the group model's own
 weights run again with each wider window W at inference (same parameters: a window is not a
-weight), and per window the page gets the test mAP (`build_dump` + `evaluate`, top-K) and the
-final layer's attention-spread trend (`groups.attention_trends`, the same detections and
-criteria as section 4). The weights were trained with their own window, so a wider one
-costs mAP; the trend says what the attention does when it is allowed to spread.
+weight), and per window the page gets the test mAP (`build_dump` + `evaluate`, default
+decoding) and the final layer's attention-spread trend (`groups.attention_trends`, the
+same detections and criteria as section 4). The weights were trained with their own
+window, so a wider one costs mAP; the trend says what the attention does when it is
+allowed to spread.
 """
 
 from __future__ import annotations
@@ -69,7 +70,7 @@ def probe_table(own: int, own_ap: float, own_trend: LayerTrend, probes: Sequence
     """Markdown: one row per window (the trained one first), with the distance medians."""
     rows = [(own, own * cell, own_ap, own_trend, " (trained)"),
             *[(p.window, p.metres, p.mean_ap, p.trend, "") for p in probes]]
-    head = ("| window | mAP (test, top-K) | cars, score ≥ 0.8 | ρ vs IoU (≤ −0.6) | "
+    head = ("| window | mAP (test) | cars, score ≥ 0.8 | ρ vs IoU (≤ −0.6) | "
             "ρ vs distance (≥ 0.6) | rank-deficient C_K | AS median by distance (m⁴): "
             "0-10 / 10-20 / 20-30 / 30-40 / 40-50 m |\n|---|---:|---:|---:|---:|---:|---|")
     lines = [head]

@@ -1,5 +1,6 @@
 """Reading detections off the queries: "topk" (the best (query, class) pairs, DETR3D's and
-PETR's NMS-free coder) and "query" (one detection per query, its arg-max class)."""
+PETR's NMS-free coder), "topk_nms" (the same after class-wise circle NMS, the default) and
+"query" (one detection per query, its arg-max class)."""
 
 from __future__ import annotations
 
@@ -41,7 +42,7 @@ def test_topk_reads_pairs_in_score_order_and_repeats_queries():
 def test_dumps_carry_the_decoded_labels(tmp_path, tiny_config):
     torch.manual_seed(0)
     model = Detector(tiny_config("radar5")).eval()
-    topk = build_dump(model, SEEDS, max_detections=30, gt_filter="none")
+    topk = build_dump(model, SEEDS, max_detections=30, gt_filter="none", decode="topk")
     (path,) = write_dump(topk, tmp_path / "topk.npz")
     loaded = load_dump(path)
     assert loaded.det_label is not None and loaded.n_detections == 60
@@ -61,3 +62,12 @@ def test_dumps_carry_the_decoded_labels(tmp_path, tiny_config):
         np.testing.assert_array_equal(topk.det_boxes[a], query.det_boxes[b])
     with pytest.raises(ValueError, match="decode"):
         build_dump(model, SEEDS, decode="nms")
+    # the default, "topk_nms", keeps a subset of the top-K pairs, in the same order
+    nms = build_dump(model, SEEDS, max_detections=30, gt_filter="none")
+    assert nms.det_label is not None and nms.n_detections <= topk.n_detections
+    pairs = [(f, lab, box.tobytes()) for f, lab, box in
+             zip(topk.det_frame, topk.det_labels, topk.final_boxes, strict=True)]
+    kept = [(f, lab, box.tobytes()) for f, lab, box in
+            zip(nms.det_frame, nms.det_labels, nms.final_boxes, strict=True)]
+    positions = [pairs.index(k) for k in kept]
+    assert positions == sorted(positions)
