@@ -64,8 +64,10 @@ class DecoderLayer(nn.Module):
 
     def forward(self, query: Tensor, query_pos: Tensor, memory: Tensor,
                 memory_pos: Tensor, need_weights: bool = True,
-                anchors: Tensor | None = None) -> DecoderOutput:
-        """`anchors [B, Q, 2]` (metres) place a windowed cross-attention's windows."""
+                anchors: Tensor | None = None,
+                weights_out: Tensor | None = None) -> DecoderOutput:
+        """`anchors [B, Q, 2]` (metres) place a windowed cross-attention's windows;
+        `weights_out [B, Q, T]` (zeros) receives a windowed attention's weights in place."""
         q = query + query_pos
         attended, _ = self.self_attn(q, q, query, need_weights=False)
         query = self.norm1(query + self.drop1(attended))
@@ -73,7 +75,8 @@ class DecoderLayer(nn.Module):
             if anchors is None:
                 raise ValueError("a windowed cross-attention needs the query anchors")
             attended, weights = self.cross_attn(query, query_pos, memory, memory_pos, anchors,
-                                                need_weights=need_weights)
+                                                need_weights=need_weights,
+                                                weights_out=weights_out)
         else:
             attended, weights = self.cross_attn(query + query_pos, memory + memory_pos,
                                                 memory, need_weights=need_weights,

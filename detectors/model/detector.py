@@ -202,10 +202,15 @@ class Detector(nn.Module):
         query = init.content
         anchors = init.anchors
         preds, attention, anchor_list = [], [], []
-        for layer, head in zip(self.layers, self.heads, strict=True):
+        # A windowed attention writes its weights straight into one [L, B, Q, T] buffer:
+        # stacking per-layer maps afterwards cost ~6 ms of a ~45 ms lidar forward.
+        buffer = None
+        if need_attention and self.config.attn_window:
+            buffer = memory.new_zeros(len(self.layers), *query.shape[:2], memory.shape[1])
+        for i, (layer, head) in enumerate(zip(self.layers, self.heads, strict=True)):
             query_pos = self.position(anchors)
             out = layer(query, query_pos, memory, memory_pos, need_weights=need_attention,
-                        anchors=anchors)
+                        anchors=anchors, weights_out=None if buffer is None else buffer[i])
             query = out.query
             pred = head(query, anchors)
             preds.append(pred)
@@ -223,7 +228,7 @@ class Detector(nn.Module):
             "token_centres": self.token_centres,
         }
         if need_attention:
-            result["attention"] = torch.stack(attention)
+            result["attention"] = buffer if buffer is not None else torch.stack(attention)
         if self.class_group is not None:
             result["pred_group_boxes"] = torch.stack([p.group_boxes for p in preds])
             result["pred_group_encoded"] = torch.stack([p.group_encoded for p in preds])

@@ -60,7 +60,11 @@ class WindowCrossAttention(nn.Module):
         return corner[..., None] + self.offsets
 
     def forward(self, query: Tensor, query_pos: Tensor, memory: Tensor, memory_pos: Tensor,
-                anchors: Tensor, need_weights: bool = True) -> tuple[Tensor, Tensor | None]:
+                anchors: Tensor, need_weights: bool = True,
+                weights_out: Tensor | None = None) -> tuple[Tensor, Tensor | None]:
+        """`weights_out [B, Q, T]`, all zeros, receives the weights in place (the detector
+        hands each layer its slice of one `[L, B, Q, T]` buffer: stacking per-layer maps
+        copied 29 MB per lidar frame)."""
         b, q, d = query.shape
         h, dh = self.n_heads, d // self.n_heads
         index = self.window_index(anchors)                                   # [B, Q, K]
@@ -87,6 +91,7 @@ class WindowCrossAttention(nn.Module):
         out = attn @ v
         weights = None
         if need_weights:
-            weights = query.new_zeros(b, q, memory.shape[1]).scatter_(
-                2, index, attn.mean(dim=1).view(b, q, n))
+            if weights_out is None:
+                weights_out = query.new_zeros(b, q, memory.shape[1])
+            weights = weights_out.scatter_(2, index, attn.mean(dim=1).view(b, q, n))
         return self.out_proj(out.reshape(b, q, d)), weights

@@ -81,7 +81,7 @@ def test_detect_sends_the_group_heads_hypotheses_and_labels(seeded):
                                        "profile": "hyp"})
     assert r.status_code == 200, r.text
     dets = r.json()["frames"][0]["detections"]
-    assert len(dets) == 100
+    assert 50 < len(dets) <= 100   # the 100 best pairs, less what circle NMS drops
     raw = [d["score_raw"] for d in dets]
     assert raw == sorted(raw, reverse=True)
     # the same pairs straight from the model: (label, raw score) per detection, in order

@@ -101,6 +101,15 @@ def test_a_windowed_detector_gives_attention_over_the_fine_grid(tiny_config):
     torch.testing.assert_close(out["attention"].sum(-1), torch.ones(cfg.n_layers, 2,
                                                                     cfg.n_queries))
     assert ((out["attention"] > 0).sum(-1) <= 36).all()
+    # the detector's one [L, B, Q, T] buffer holds what each layer computes on its own
+    with torch.no_grad():
+        enc = model.encode(points)
+        query, anchors = enc.init.content, out["anchors"]
+        for i, layer in enumerate(model.layers):
+            alone = layer(query, model.position(anchors[i]), enc.memory, enc.memory_pos,
+                          anchors=anchors[i])
+            torch.testing.assert_close(alone.attention, out["attention"][i], rtol=0, atol=0)
+            query = alone.query
     with pytest.raises(ValueError, match="attn_window"):
         tiny_config(token_stride=1, attn_window=65)
     # old configurations (no attn_window) load as dense attention
