@@ -54,6 +54,12 @@ class AttentionStats:
     per_layer: Binned
     n_detections: int
     min_score: float
+    # The rows behind vs_iou and vs_distance (for bootstrap intervals of their trends):
+    # final-layer AS [n] of the kept detections, their IoU bin [n] (-1: IoU 0, left out)
+    # and distance bin [n].
+    final_as: np.ndarray | None = None
+    iou_bin: np.ndarray | None = None
+    distance_bin: np.ndarray | None = None
 
 
 def spread(cov: np.ndarray) -> np.ndarray:
@@ -124,4 +130,6 @@ def attention_stats(dump: Dump, attn_cov: np.ndarray, cell: float, min_score: fl
         per_layer=binned(layer_values, layer_groups, n_layers,
                          tuple(f"layer {i + 1}" for i in range(n_layers)),
                          single.T.reshape(-1)),
-        n_detections=int(keep.sum()), min_score=float(min_score))
+        n_detections=int(keep.sum()), min_score=float(min_score), final_as=final,
+        iou_bin=np.where(positive, np.minimum((iou * 10).astype(int), 9), -1),
+        distance_bin=d_bin)

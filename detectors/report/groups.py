@@ -80,15 +80,39 @@ def trend(stat: Binned, min_n: int = 5, flat: float = 1e-6) -> float:
     return float(spearmanr(ok, medians).statistic)
 
 
+def trend_interval(values: np.ndarray, bins: np.ndarray, n_bins: int, n_boot: int = 1000,
+                   seed: int = 0, level: float = 0.95) -> tuple[float, float]:
+    """Bootstrap interval of `trend` over the rows: `values [n]` in bins `bins [n]`
+    (0..n_bins-1; other bins left out), resampled `n_boot` times with replacement. A rho
+    decided by a bin of a dozen detections shows as a wide interval. (NaN, NaN) when no
+    resample gives a rho."""
+    values, bins = np.asarray(values, dtype=np.float64), np.asarray(bins)
+    rows = (bins >= 0) & (bins < n_bins)
+    values, bins = values[rows], bins[rows]
+    labels = tuple(str(b) for b in range(n_bins))
+    rng = np.random.default_rng(seed)
+    rhos = np.array([trend(binned(values[i], bins[i], n_bins, labels))
+                     for i in (rng.integers(0, len(values), len(values))
+                               for _ in range(n_boot if len(values) else 0))])
+    rhos = rhos[np.isfinite(rhos)]
+    if len(rhos) == 0:
+        return float("nan"), float("nan")
+    lo, hi = np.percentile(rhos, [50 * (1 - level), 50 * (1 + level)])
+    return float(lo), float(hi)
+
+
 @dataclass(frozen=True)
 class LayerTrend:
-    """Seed 000's statistics at one decoder layer, with the two rhos."""
+    """Seed 000's statistics at one decoder layer, with the two rhos and their bootstrap
+    95 % intervals over the detections (`trend_interval`)."""
 
     layer: int
     stats: AttentionStats
     rho_iou: float
     rho_distance: float
     rank_deficient: float
+    rho_iou_interval: tuple[float, float] = (float("nan"), float("nan"))
+    rho_distance_interval: tuple[float, float] = (float("nan"), float("nan"))
 
 
 def attention_trends(dump: Dump, attn_cov: np.ndarray, cell: float, class_name: str = "car",
@@ -106,8 +130,11 @@ def attention_trends(dump: Dump, attn_cov: np.ndarray, cell: float, class_name: 
         collapsed = stats.vs_distance.collapsed
         n = stats.vs_distance.n
         share = float(np.nansum(collapsed * n) / max(n.sum(), 1))
-        out.append(LayerTrend(layer + 1, stats, trend(stats.vs_iou), trend(stats.vs_distance),
-                              share))
+        final, n_iou = stats.final_as, len(stats.vs_iou.labels)
+        out.append(LayerTrend(
+            layer + 1, stats, trend(stats.vs_iou), trend(stats.vs_distance), share,
+            trend_interval(final, stats.iou_bin, n_iou),
+            trend_interval(final, stats.distance_bin, len(stats.vs_distance.labels))))
     return out
 
 

@@ -158,7 +158,9 @@ def _section_attention(runs: V2Runs, options: V2Options) -> list[str]:
             "AS = det(C_K + cell²/12·I) (m⁴), C_K the weighted covariance of a query's top-6 "
             "cross-attention cells, per decoder layer (IoU and distance of the final box). "
             "ρ: Spearman's rho of the bin medians against the bin order (bins with >= 5 "
-            "detections; `-` with fewer than 3 such bins or equal medians). Criteria (issue "
+            "detections; `-` with fewer than 3 such bins or equal medians); its bootstrap "
+            "95 % interval resamples the detections 1000 times (seed 0): a ρ that one small "
+            "bin decides shows as a wide interval. Criteria (issue "
             "13): median AS falls from the lowest to the highest IoU bin with ρ ≤ −0.6, rises "
             "with distance with ρ ≥ 0.6, fewer than 20 % rank-deficient C_K.", "",
             *_trend_block(runs.group, options), *_trend_block(runs.baseline, options),

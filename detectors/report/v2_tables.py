@@ -114,13 +114,22 @@ def trend_bins_table(trends: Sequence[LayerTrend], axis: str) -> str:
     return "\n".join(lines)
 
 
+def _interval(pair: tuple[float, float]) -> str:
+    lo, hi = pair
+    return "-" if not (np.isfinite(lo) and np.isfinite(hi)) else f"[{lo:.2f}, {hi:.2f}]"
+
+
 def trend_summary_table(trends: Sequence[LayerTrend]) -> str:
-    """Per layer: detections, ρ(AS, IoU bin), ρ(AS, distance bin), rank-deficient share."""
-    lines = ["| layer | detections | ρ vs IoU (≤ −0.6) | ρ vs distance (≥ 0.6) | "
-             "rank-deficient C_K (< 20 %) |", "|---|---:|---:|---:|---:|"]
+    """Per layer: detections, ρ(AS, IoU bin), ρ(AS, distance bin), each with its bootstrap
+    95 % interval over the detections, rank-deficient share."""
+    lines = ["| layer | detections | ρ vs IoU (≤ −0.6) | ρ vs IoU, bootstrap 95 % | "
+             "ρ vs distance (≥ 0.6) | ρ vs distance, bootstrap 95 % | "
+             "rank-deficient C_K (< 20 %) |", "|---|---:|---:|---:|---:|---:|---:|"]
     for t in trends:
         lines.append(f"| {t.layer} | {t.stats.n_detections} | {number(t.rho_iou, 3)} | "
-                     f"{number(t.rho_distance, 3)} | {100 * t.rank_deficient:.1f} % |")
+                     f"{_interval(t.rho_iou_interval)} | {number(t.rho_distance, 3)} | "
+                     f"{_interval(t.rho_distance_interval)} | "
+                     f"{100 * t.rank_deficient:.1f} % |")
     return "\n".join(lines)
 
 

@@ -26,12 +26,13 @@ from detectors.report.groups import (
     collect_outputs,
     inter_group_std,
     per_layer,
+    trend_interval,
 )
 from detectors.report.sensor import report_base
 from detectors.report.tables import number
 from detectors.report.v2 import V2Options, V2Runs, measure_v2, v2_page
 from detectors.report.v2_cov import SourceRows, SourceSkip, source_rows, source_table
-from detectors.report.v2_tables import kept_queries, trend_verdict
+from detectors.report.v2_tables import _interval, kept_queries, trend_verdict
 from detectors.sim import SPLITS
 
 N_TEST, N_VAL = 2, 2
@@ -118,8 +119,27 @@ def test_attention_tables_show_the_trends(report: tuple) -> None:
         assert len(run.trends) == run.outputs.layer_logits.shape[1]
         for t in run.trends:
             assert (f"| {t.layer} | {t.stats.n_detections} | {number(t.rho_iou, 3)} | "
-                    f"{number(t.rho_distance, 3)} | {100 * t.rank_deficient:.1f} % |") in page
+                    f"{_interval(t.rho_iou_interval)} | {number(t.rho_distance, 3)} | "
+                    f"{_interval(t.rho_distance_interval)} | "
+                    f"{100 * t.rank_deficient:.1f} % |") in page
             assert trend_verdict(t)[1] in page
+
+
+def test_a_trend_one_small_bin_decides_has_a_wide_bootstrap_interval() -> None:
+    rng = np.random.default_rng(0)
+    # four bins of 200 detections whose medians fall clearly: a tight interval at -1
+    values = np.concatenate([rng.normal(m, 0.05, 200) for m in (1.0, 0.8, 0.6, 0.4)])
+    bins = np.repeat(np.arange(4), 200)
+    lo, hi = trend_interval(values, bins, 4, n_boot=200)
+    assert lo == hi == -1.0
+    # bins 1-3 fall clearly, bin 0 holds 8 detections spread widely: its median decides rho
+    # (-1 above 0.8, -0.4 between 0.6 and 0.7, 0.2 below 0.6), so the interval is wide
+    few = np.concatenate([rng.normal(0.7, 0.4, 8)]
+                         + [rng.normal(m, 0.02, 200) for m in (0.8, 0.7, 0.6)])
+    few_bins = np.concatenate([np.zeros(8, int), np.repeat(np.arange(1, 4), 200)])
+    lo, hi = trend_interval(few, few_bins, 4, n_boot=200)
+    assert lo == -1.0 and hi > 0.1
+    assert np.isnan(trend_interval(np.zeros(0), np.zeros(0, int), 4)[0])
 
 
 def _binned(medians: list[float]) -> Binned:
