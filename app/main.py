@@ -77,7 +77,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                            max_dump_bytes=settings.max_dump_bytes,
                            datasets_dir=settings.datasets_dir)
         app.state.store, app.state.cache, app.state.runner = store, cache, runner
-        app.state.metrics.attach_store(store)
+        app.state.metrics.attach_store(store, settings.health_window_frames)
         runner.start()
         # The modules, the app and the loaded profiles live as long as the process: frozen
         # out of the garbage collector's full collections, which would otherwise walk them

@@ -24,10 +24,12 @@ _BUCKETS = (0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5
 
 class _StoreCollector(Collector):
     """Fit jobs by state, the active version of every profile and the feedback health of every
-    version that has feedback, read at scrape time."""
+    version that has feedback (over all of it, and over the rolling window of the last
+    `window_frames` frames, as `GET /v1/profiles/{name}/health`), read at scrape time."""
 
-    def __init__(self, store: Store) -> None:
+    def __init__(self, store: Store, window_frames: int) -> None:
         self.store = store
+        self.window_frames = window_frames
 
     def collect(self) -> Iterator[GaugeMetricFamily]:
         jobs = GaugeMetricFamily("detcal_fit_jobs", "Fit jobs by state.", labels=["state"])
@@ -40,15 +42,23 @@ class _StoreCollector(Collector):
         for name, version in sorted(self.store.active_versions().items()):
             active.add_metric([name], version)
         yield active
-        yield from health_metrics(self.store.health_overview())
+        from app.health_document import window_counts
+
+        rows = self.store.health_overview()
+        windows = [window_counts(self.store, row.profile_id, row.latest, self.window_frames)
+                   for row in rows]
+        yield from health_metrics(rows, windows)
 
 
 HEALTH_STATUSES = ("ok", "degraded", "insufficient")
 
 
-def health_metrics(rows: list[HealthOverview]) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
+def health_metrics(rows: list[HealthOverview], windows: list[HealthCounts] | None = None
+                   ) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
     """Feedback health of each version (over all its feedback so far): status (one-hot), ECE,
-    coverage per served level, frames, and the drift alarms raised (a counter)."""
+    coverage per served level, frames, and the drift alarms raised (a counter); with
+    `windows` (one per row: the sums of its rolling window) also ECE, coverage and frames
+    over the window, the figures `GET /v1/profiles/{name}/health` shows as `window`."""
     labels = ["profile", "version"]
     status = GaugeMetricFamily("detcal_profile_health_status", "Health status of a profile "
                                "version (1 for its status).", labels=[*labels, "status"])
@@ -61,7 +71,14 @@ def health_metrics(rows: list[HealthOverview]) -> Iterator[GaugeMetricFamily | C
                                labels=labels)
     alarms = CounterMetricFamily("detcal_drift_alarms", "Drift alarms raised on feedback.",
                                  labels=labels)
-    for row in rows:
+    w_ece = GaugeMetricFamily("detcal_profile_health_window_ece", "ECE of the calibrated "
+                              "scores over the rolling feedback window.", labels=labels)
+    w_coverage = GaugeMetricFamily("detcal_profile_health_window_coverage", "Fraction of true "
+                                   "centres inside the served ellipses over the rolling "
+                                   "feedback window.", labels=[*labels, "level"])
+    w_frames = GaugeMetricFamily("detcal_profile_health_window_frames", "Feedback frames in "
+                                 "the rolling window.", labels=labels)
+    for i, row in enumerate(rows):
         key = [row.name, str(row.version)]
         counts = HealthCounts.from_dict(json.loads(row.latest.counts))
         levels = json.loads(row.latest.drift)["levels"]
@@ -75,7 +92,18 @@ def health_metrics(rows: list[HealthOverview]) -> Iterator[GaugeMetricFamily | C
                 coverage.add_metric([*key, f"{level:g}"], cov)
         frames.add_metric(key, counts.frames)
         alarms.add_metric(key, row.latest.alarms_total)
+        if windows is not None:
+            window = windows[i]
+            value = window.ece()
+            if value is not None:
+                w_ece.add_metric(key, value)
+            for level, cov in zip(levels, window.coverage(), strict=True):
+                if cov is not None:
+                    w_coverage.add_metric([*key, f"{level:g}"], cov)
+            w_frames.add_metric(key, window.frames)
     yield from (status, ece, coverage, frames, alarms)
+    if windows is not None:
+        yield from (w_ece, w_coverage, w_frames)
 
 
 class ServiceMetrics:
@@ -93,11 +121,12 @@ class ServiceMetrics:
                                   "Detections calibrated.", ["profile"], registry=self.registry)
         self._store_collector: _StoreCollector | None = None
 
-    def attach_store(self, store: Store) -> None:
-        """Report fit jobs and active versions of `store` (once the lifespan opened it)."""
+    def attach_store(self, store: Store, window_frames: int) -> None:
+        """Report fit jobs, active versions and feedback health of `store` (once the
+        lifespan opened it); `window_frames` is the health window (settings)."""
         if self._store_collector is not None:
             self.registry.unregister(self._store_collector)
-        self._store_collector = _StoreCollector(store)
+        self._store_collector = _StoreCollector(store, window_frames)
         self.registry.register(self._store_collector)
 
     def _scrape_registry(self) -> CollectorRegistry:

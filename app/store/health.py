@@ -50,6 +50,7 @@ class HealthOverview:
     version: int
     active: bool
     latest: HealthRecord
+    profile_id: int
 
 
 class HealthStore(StorePart):
@@ -133,7 +134,7 @@ class HealthStore(StorePart):
                 .join(ProfileRow, ProfileRow.id == HealthRow.profile_id)
                 .join(ActiveRow, ActiveRow.name == ProfileRow.name, isouter=True)
                 .order_by(ProfileRow.name, ProfileRow.version)).all()
-        return [HealthOverview(name, version, version == active, _record(row))
+        return [HealthOverview(name, version, version == active, _record(row), row.profile_id)
                 for row, name, version, active in rows]
 
 

@@ -189,3 +189,35 @@ def test_a_dump_upload_has_the_upload_limit_and_json_the_request_limit(seeded, l
         r = c.post(FB, headers={**ADMIN, "content-type": "application/json"},
                    content=b"{" + b" " * len(body) + b"}")
         assert r.status_code == 413
+
+
+def _gauges(text: str, name: str) -> dict[str, float]:
+    """`{labels: value}` of one metric family in a Prometheus exposition."""
+    out = {}
+    for line in text.splitlines():
+        if line.startswith(name + "{"):
+            labels, value = line[len(name):].rsplit(" ", 1)
+            out[labels] = float(value)
+    return out
+
+
+def test_metrics_carry_the_rolling_window_the_health_document_shows(seeded, labelled):
+    """/metrics has the window's ECE, coverage and frames beside the all-feedback ones, and
+    they are the health document's `window` figures (the window shorter than the feedback)."""
+    with TestClient(create_app(seeded.model_copy(update={"health_window_frames": 10}))) as c:
+        frames = feedback_frames(labelled)
+        for chunk in (frames[:12], frames[12:]):
+            assert c.post(FB, headers=ADMIN, json={"frames": chunk}).status_code == 200
+        doc = c.get(HEALTH).json()
+        text = c.get("/metrics").text
+    win, key = doc["window"], '{profile="lidar",version="1"}'
+    assert win["frames"] == 12 and doc["since_activation"]["frames"] == 24
+    assert _gauges(text, "detcal_profile_health_window_frames") == {key: 12.0}
+    assert _gauges(text, "detcal_profile_health_frames") == {key: 24.0}
+    assert _gauges(text, "detcal_profile_health_window_ece")[key] == pytest.approx(
+        win["ece"]["value"], rel=1e-9)
+    coverage = _gauges(text, "detcal_profile_health_window_coverage")
+    for entry in win["coverage"]["overall"]:
+        level = f'{{level="{entry["level"]:g}",profile="lidar",version="1"}}'
+        assert coverage[level] == pytest.approx(entry["coverage"], rel=1e-9)
+    assert coverage != _gauges(text, "detcal_profile_health_coverage")
