@@ -80,30 +80,31 @@ def health_metrics(rows: list[HealthOverview], windows: list[HealthCounts] | Non
                                  "the rolling window.", labels=labels)
     for i, row in enumerate(rows):
         key = [row.name, str(row.version)]
-        counts = HealthCounts.from_dict(json.loads(row.latest.counts))
         levels = json.loads(row.latest.drift)["levels"]
         for s in HEALTH_STATUSES:
             status.add_metric([*key, s], float(row.latest.status == s))
-        value = counts.ece()
-        if value is not None:
-            ece.add_metric(key, value)
-        for level, cov in zip(levels, counts.coverage(), strict=True):
-            if cov is not None:
-                coverage.add_metric([*key, f"{level:g}"], cov)
-        frames.add_metric(key, counts.frames)
+        _add_figures((ece, coverage, frames), key, levels,
+                     HealthCounts.from_dict(json.loads(row.latest.counts)))
         alarms.add_metric(key, row.latest.alarms_total)
         if windows is not None:
-            window = windows[i]
-            value = window.ece()
-            if value is not None:
-                w_ece.add_metric(key, value)
-            for level, cov in zip(levels, window.coverage(), strict=True):
-                if cov is not None:
-                    w_coverage.add_metric([*key, f"{level:g}"], cov)
-            w_frames.add_metric(key, window.frames)
+            _add_figures((w_ece, w_coverage, w_frames), key, levels, windows[i])
     yield from (status, ece, coverage, frames, alarms)
     if windows is not None:
         yield from (w_ece, w_coverage, w_frames)
+
+
+def _add_figures(families: tuple[GaugeMetricFamily, GaugeMetricFamily, GaugeMetricFamily],
+                 key: list[str], levels: list[float], counts: HealthCounts) -> None:
+    """Add one version's ECE, coverage per served level and frames of `counts` to the
+    (ece, coverage, frames) gauge families; an undefined figure (no detections) is left out."""
+    ece, coverage, frames = families
+    value = counts.ece()
+    if value is not None:
+        ece.add_metric(key, value)
+    for level, cov in zip(levels, counts.coverage(), strict=True):
+        if cov is not None:
+            coverage.add_metric([*key, f"{level:g}"], cov)
+    frames.add_metric(key, counts.frames)
 
 
 class ServiceMetrics:
