@@ -29,12 +29,12 @@ def _counts(row: HealthRecord | None, zero: HealthCounts) -> HealthCounts:
     return zero if row is None else HealthCounts.from_dict(json.loads(row.counts))
 
 
-def window_counts(store: Store, profile_id: int, latest: HealthRecord,
+def window_counts(store: Store, profile_id: int, latest: HealthRecord, total: HealthCounts,
                   window_frames: int) -> HealthCounts:
-    """The sums of the rolling window of a version whose newest row is `latest`: what came
-    after its newest row holding at most `frames_total - window_frames` frames (everything
-    when there is none). The health document and the Prometheus gauges both read it."""
-    total = HealthCounts.from_dict(json.loads(latest.counts))
+    """The sums of the rolling window of a version whose newest row is `latest` (its sums,
+    already read, `total`): what came after its newest row holding at most
+    `frames_total - window_frames` frames (everything when there is none). The health
+    document and the Prometheus gauges both read it."""
     base = store.health_at_most(profile_id, latest.frames_total - window_frames)
     return total if base is None else total - HealthCounts.from_dict(json.loads(base.counts))
 
@@ -53,7 +53,8 @@ def health_document(store: Store, loaded: LoadedProfile, window_frames: int) -> 
     classes, levels, edges = monitor.classes, monitor.levels, monitor.distance_edges
     zero = HealthCounts.zeros(len(classes), monitor.n_bins, len(edges) - 1, len(levels))
     total = _counts(latest, zero)
-    window = zero if latest is None else window_counts(store, record.id, latest, window_frames)
+    window = zero if latest is None else window_counts(store, record.id, latest, total,
+                                                       window_frames)
     activated = store.activated_at(record.name, record.version)
     since_base = None if latest is None or activated is None else store.health_before(
         record.id, activated)

@@ -13,6 +13,7 @@ from prometheus_client.core import CounterMetricFamily, GaugeMetricFamily
 from prometheus_client.registry import Collector
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
+from app.health_document import window_counts
 from app.store import HealthOverview, Store
 from app.store.records import JOB_STATES
 from calibrators.health import HealthCounts
@@ -42,23 +43,24 @@ class _StoreCollector(Collector):
         for name, version in sorted(self.store.active_versions().items()):
             active.add_metric([name], version)
         yield active
-        from app.health_document import window_counts
-
         rows = self.store.health_overview()
-        windows = [window_counts(self.store, row.profile_id, row.latest, self.window_frames)
-                   for row in rows]
-        yield from health_metrics(rows, windows)
+        totals = [HealthCounts.from_dict(json.loads(row.latest.counts)) for row in rows]
+        windows = [window_counts(self.store, row.profile_id, row.latest, total,
+                                 self.window_frames) for row, total in zip(rows, totals,
+                                                                           strict=True)]
+        yield from health_metrics(rows, totals, windows)
 
 
 HEALTH_STATUSES = ("ok", "degraded", "insufficient")
 
 
-def health_metrics(rows: list[HealthOverview], windows: list[HealthCounts] | None = None
+def health_metrics(rows: list[HealthOverview], totals: list[HealthCounts],
+                   windows: list[HealthCounts]
                    ) -> Iterator[GaugeMetricFamily | CounterMetricFamily]:
-    """Feedback health of each version (over all its feedback so far): status (one-hot), ECE,
-    coverage per served level, frames, and the drift alarms raised (a counter); with
-    `windows` (one per row: the sums of its rolling window) also ECE, coverage and frames
-    over the window, the figures `GET /v1/profiles/{name}/health` shows as `window`."""
+    """Feedback health of each version, one per row: status (one-hot) and the drift alarms
+    raised (a counter); ECE, coverage per served level and frames over all its feedback
+    (`totals`, the sums of each row) and over its rolling window (`windows`, the figures
+    `GET /v1/profiles/{name}/health` shows as `window`)."""
     labels = ["profile", "version"]
     status = GaugeMetricFamily("detcal_profile_health_status", "Health status of a profile "
                                "version (1 for its status).", labels=[*labels, "status"])
@@ -78,19 +80,15 @@ def health_metrics(rows: list[HealthOverview], windows: list[HealthCounts] | Non
                                    "feedback window.", labels=[*labels, "level"])
     w_frames = GaugeMetricFamily("detcal_profile_health_window_frames", "Feedback frames in "
                                  "the rolling window.", labels=labels)
-    for i, row in enumerate(rows):
+    for row, total, window in zip(rows, totals, windows, strict=True):
         key = [row.name, str(row.version)]
         levels = json.loads(row.latest.drift)["levels"]
         for s in HEALTH_STATUSES:
             status.add_metric([*key, s], float(row.latest.status == s))
-        _add_figures((ece, coverage, frames), key, levels,
-                     HealthCounts.from_dict(json.loads(row.latest.counts)))
+        _add_figures((ece, coverage, frames), key, levels, total)
         alarms.add_metric(key, row.latest.alarms_total)
-        if windows is not None:
-            _add_figures((w_ece, w_coverage, w_frames), key, levels, windows[i])
-    yield from (status, ece, coverage, frames, alarms)
-    if windows is not None:
-        yield from (w_ece, w_coverage, w_frames)
+        _add_figures((w_ece, w_coverage, w_frames), key, levels, window)
+    yield from (status, ece, coverage, frames, alarms, w_ece, w_coverage, w_frames)
 
 
 def _add_figures(families: tuple[GaugeMetricFamily, GaugeMetricFamily, GaugeMetricFamily],

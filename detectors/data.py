@@ -144,9 +144,8 @@ class TrainSamples(torch.utils.data.Dataset):
         return self.extra_objects
 
     def scene_use(self, k: int) -> tuple[int, int]:
-        """Sample `k` -> (scene number j, use 0..reuse-1); use 0 is sample `first_sample(j)`."""
-        if self.reuse == 1:
-            return k, 0
+        """Sample `k` -> (scene number j, use 0..reuse-1); use 0 is sample `first_sample(j)`
+        (with reuse 1, j = k)."""
         block, offset = divmod(k, self.reuse * self.span)
         use, slot = divmod(offset, self.span)
         return block * self.span + slot, use
