@@ -68,6 +68,11 @@ def _train_options(tr: argparse.ArgumentParser) -> None:
     tr.add_argument("--workers", type=int, default=None, help="frame-generating workers")
     tr.add_argument("--threads", type=int, default=None,
                     help="torch threads (default 2; 1 when two runs share two cores)")
+    tr.add_argument("--device", default=None,
+                    help="torch device for the model (default cpu, the recipes' budget; "
+                         "e.g. cuda: frames are still simulated on the CPU)")
+    tr.add_argument("--snapshot-every", type=int, default=None, metavar="N",
+                    help="also keep the weights of every N-th step as RUN_DIR/step_N.pt")
     tr.add_argument("--base-weights", default=None,
                     help="train a deep sub-ensemble head: freeze the trunk of this weights "
                          "file and train a fresh decoder head on it (recipe: "
@@ -123,7 +128,8 @@ def run_train(args: argparse.Namespace) -> int:
                          "with a sub-ensemble head)")
     cfg = TrainConfig.for_sensor(args.sensor, steps=args.steps, batch_size=args.batch_size,
                                  seed=args.seed, workers=args.workers, threads=args.threads,
-                                 base_weights=args.base_weights)
+                                 base_weights=args.base_weights, device=args.device,
+                                 snapshot_every=args.snapshot_every)
     run = Path(args.run_dir) if args.run_dir else Path("runs") / args.sensor
     if args.resume and not (run / "ckpt.pt").exists():
         raise ValueError(f"--resume given but there is no checkpoint at {run / 'ckpt.pt'}")

@@ -211,7 +211,7 @@ class SetCriterion:
             for b, (m, t) in enumerate(zip(matches, targets, strict=True)):
                 onehot[b, m.query, t.labels[m.gt]] = 1.0
                 if grouped:
-                    group = self.class_group[t.labels[m.gt]]  # type: ignore[index]
+                    group = self.class_group.to(device)[t.labels[m.gt]]  # type: ignore[union-attr]
                     pred.append(encoded[b, m.query, group])
                 else:
                     pred.append(encoded[b, m.query])

@@ -1,4 +1,4 @@
-"""Resumable, deterministic CPU training of one sensor's detector.
+"""Resumable, deterministic training of one sensor's detector (CPU; a GPU where there is one).
 
 `train(sensor)` streams augmented frames of `detectors.sim.SPLITS["train"]` (generated on the
 fly by a loader worker), optimises `detectors.losses.SetCriterion` with AdamW under a linear
@@ -10,6 +10,11 @@ warm-up + cosine schedule, and
 - appends one row per step to `runs/{sensor}/log.csv`;
 - at the end writes the shipped weights `detectors/weights/{sensor}.pt` (float32 state
   dict + config + training metadata).
+
+`TrainConfig.device` ("cpu" by default, the recipes' budget machine) may name a torch device
+such as "cuda": the frames are still simulated on the CPU by the loader workers, the model,
+its batches and the loss run on the device. The data of step k is the same on any device;
+the arithmetic is not bit-identical across devices, and a checkpoint resumes on any device.
 """
 
 from __future__ import annotations
@@ -26,7 +31,7 @@ import numpy as np
 import torch
 
 from detectors.data import TrainSamples, collate
-from detectors.losses import SetCriterion
+from detectors.losses import SetCriterion, Target
 from detectors.model.detector import Detector, DetectorConfig
 from detectors.registry import (
     SUB_ENSEMBLE_RECIPE,
@@ -71,18 +76,27 @@ class TrainConfig:
     base_weights: str | None = None
     # Running: checkpoint every N steps, torch threads, frame-generating worker processes.
     ckpt_every: int = 200
+    # Also keep the weights at every N-th step as `{run_dir}/step_{N}.pt` (0: none), to
+    # follow a quantity (an attention trend, mAP) through one run.
+    snapshot_every: int = 0
     threads: int = 2
     workers: int = 1
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         for name in ("steps", "batch_size", "threads", "ckpt_every", "scene_reuse"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.workers < 0 or self.warmup < 0:
-            raise ValueError(f"workers and warmup must be >= 0, got {self.workers}, "
-                             f"{self.warmup}")
+        if self.workers < 0 or self.warmup < 0 or self.snapshot_every < 0:
+            raise ValueError(f"workers, warmup and snapshot_every must be >= 0, got "
+                             f"{self.workers}, {self.warmup}, {self.snapshot_every}")
         if not 0.0 <= self.extra_fade <= 1.0:
             raise ValueError(f"extra_fade must be in [0, 1], got {self.extra_fade}")
+        try:
+            torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise ValueError(f"device must be a torch device such as 'cpu' or 'cuda', got "
+                             f"{self.device!r}") from None
 
     @property
     def fade_step(self) -> int:
@@ -177,6 +191,8 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
         build_detector(cfg.sensor, pretrained=False)
     if cfg.base_weights is not None:
         attach_trunk(model, cfg.base_weights)
+    device = torch.device(cfg.device)
+    model.to(device)
     train_mode(model, frozen_trunk=cfg.base_weights is not None)
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
                             weight_decay=cfg.weight_decay)
@@ -243,8 +259,9 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
             lr = learning_rate(cfg, step)
             for group in opt.param_groups:
                 group["lr"] = lr
-            outputs = model([s.points for s in batch], need_attention=False)
-            losses = criterion(outputs, [s.target for s in batch])
+            outputs = model([s.points.to(device) for s in batch], need_attention=False)
+            losses = criterion(outputs, [Target(s.target.labels.to(device),
+                                                s.target.boxes.to(device)) for s in batch])
             opt.zero_grad(set_to_none=True)
             losses["loss"].backward()
             torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
@@ -266,6 +283,9 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
             if step % cfg.ckpt_every == 0 or step == cfg.steps:
                 log_file.flush()
                 _save_checkpoint(ckpt_path, model, opt, step, cfg, elapsed)
+            if cfg.snapshot_every and step % cfg.snapshot_every == 0 and step < cfg.steps:
+                save_weights(model, run / f"step_{step}.pt",
+                             {"train_config": asdict(cfg), "steps": step})
     finally:
         log_file.close()
         if bar is not None:

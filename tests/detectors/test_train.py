@@ -59,3 +59,36 @@ def test_learning_rate_warms_up_then_decays() -> None:
 def test_bad_config_is_a_named_error(field: str) -> None:
     with pytest.raises(ValueError, match=field):
         TrainConfig.for_sensor("lidar", **{field: 0})
+
+
+def test_snapshots_keep_the_weights_of_every_nth_step(tmp_path: Path, tiny_config) -> None:
+    cfg = TrainConfig.for_sensor("lidar", steps=4, batch_size=2, warmup=2, ckpt_every=2,
+                                 workers=0, threads=1, snapshot_every=2)
+    train(cfg, run_dir=tmp_path / "run", weights_out=tmp_path / "final.pt", progress=False,
+          model_config=tiny_config())
+    kept = sorted(p.name for p in (tmp_path / "run").glob("step_*.pt"))
+    assert kept == ["step_2.pt"]                 # the last step is the weights file itself
+    snap, meta = load_weights(tmp_path / "run" / "step_2.pt")
+    final, _ = load_weights(tmp_path / "final.pt")
+    assert meta["steps"] == 2
+    assert any(not torch.equal(a, b) for a, b in zip(snap.state_dict().values(),
+                                                     final.state_dict().values(), strict=True))
+
+
+def test_device_and_snapshot_settings_are_checked() -> None:
+    with pytest.raises(ValueError, match="device"):
+        TrainConfig.for_sensor("lidar", device="gpu0")
+    with pytest.raises(ValueError, match="snapshot_every"):
+        TrainConfig.for_sensor("lidar", snapshot_every=-1)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_training_runs_on_a_cuda_device(tmp_path: Path, tiny_config) -> None:
+    cfg = TrainConfig.for_sensor("lidar", steps=2, batch_size=2, warmup=1, workers=0,
+                                 threads=1, device="cuda")
+    result = train(cfg, run_dir=tmp_path / "run", weights_out=tmp_path / "w.pt",
+                   progress=False, model_config=tiny_config())
+    model, _ = load_weights(tmp_path / "w.pt")
+    assert result.steps == 2 and next(model.parameters()).device.type == "cpu"
+    assert all(torch.isfinite(v).all() for v in model.state_dict().values()
+               if v.is_floating_point())
