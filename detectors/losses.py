@@ -189,7 +189,8 @@ class SetCriterion:
         """Returns `loss` (to minimise) and its parts `heatmap`, `cls`, `box` (summed over
         layers) and `cls_last`, `box_last` (final layer), all scalars. With `class_group`
         set, the boxes are `outputs["pred_group_encoded"]` (group-aware matching and loss)."""
-        grouped = self.class_group is not None
+        class_group = self.class_group
+        grouped = class_group is not None
         if grouped and "pred_group_encoded" not in outputs:
             raise ValueError("class_group is set but the outputs have no pred_group_encoded "
                              "(a unified-head detector)")
@@ -199,19 +200,21 @@ class SetCriterion:
         device = logits_all.device
         n_gt = max(1.0, float(sum(len(t.labels) for t in targets)))
         weights = torch.tensor(CODE_WEIGHTS, device=device)
+        if class_group is not None:
+            class_group = class_group.to(device)   # once, not per frame and layer
         heat_t = torch.stack([heatmap_target(t, self.fine_grid, self.n_classes)
                               for t in targets]).to(device)
         loss_heat = heatmap_focal_loss(outputs["heatmap"], heat_t)
         cls_terms, box_terms = [], []
         for layer in range(n_layers):
             logits, encoded = logits_all[layer], encoded_all[layer]
-            matches = self.matcher(logits, encoded, targets, self.class_group)
+            matches = self.matcher(logits, encoded, targets, class_group)
             onehot = torch.zeros_like(logits)
             pred, gt = [], []
             for b, (m, t) in enumerate(zip(matches, targets, strict=True)):
                 onehot[b, m.query, t.labels[m.gt]] = 1.0
                 if grouped:
-                    group = self.class_group.to(device)[t.labels[m.gt]]  # type: ignore[union-attr]
+                    group = class_group[t.labels[m.gt]]  # type: ignore[index]
                     pred.append(encoded[b, m.query, group])
                 else:
                     pred.append(encoded[b, m.query])
