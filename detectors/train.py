@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import csv
 import math
+import os
 import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
@@ -234,10 +235,17 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
                         extra_until=cfg.fade_step * cfg.batch_size,
                         reuse=cfg.scene_reuse)
     sampler = range(start * cfg.batch_size, cfg.steps * cfg.batch_size)
+    # With scene reuse, only the first use of a scene is simulated: `span` samples in a row
+    # are new scenes, then (reuse - 1) * span are cheap re-augmentations. With two batches
+    # of prefetch every step of a run of new scenes waited on the worker (lidar: 0.50-0.85
+    # s against 0.36 s); prefetching up to a whole span lets the worker start on the next
+    # scenes during the re-augmented steps (with the low-priority worker below: 0.44 ->
+    # 0.43 s per step on average). The data of step k is unchanged.
+    prefetch = max(2, math.ceil(data.span / cfg.batch_size)) if cfg.scene_reuse > 1 else 2
     loader = torch.utils.data.DataLoader(
         data, batch_size=cfg.batch_size, sampler=sampler, collate_fn=collate,
         num_workers=cfg.workers, worker_init_fn=_worker_init,
-        persistent_workers=False, prefetch_factor=2 if cfg.workers else None)
+        persistent_workers=False, prefetch_factor=prefetch if cfg.workers else None)
 
     bar = None
     if progress:
@@ -307,3 +315,8 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
 
 def _worker_init(_: int) -> None:
     torch.set_num_threads(1)
+    # The training process's two threads run in lock-step parallel regions: a simulating
+    # worker that takes a core from one of them stalls both. At the lowest priority the
+    # worker mostly runs in the gaps of the training process (its single-threaded parts),
+    # prefetching ahead (see `prefetch` in `train`).
+    os.nice(19)

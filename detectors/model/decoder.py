@@ -65,9 +65,12 @@ class DecoderLayer(nn.Module):
     def forward(self, query: Tensor, query_pos: Tensor, memory: Tensor,
                 memory_pos: Tensor, need_weights: bool = True,
                 anchors: Tensor | None = None,
-                weights_out: Tensor | None = None) -> DecoderOutput:
+                weights_out: Tensor | None = None,
+                memory_keys: Tensor | None = None) -> DecoderOutput:
         """`anchors [B, Q, 2]` (metres) place a windowed cross-attention's windows;
-        `weights_out [B, Q, T]` (zeros) receives a windowed attention's weights in place."""
+        `weights_out [B, Q, T]` (zeros) receives a windowed attention's weights in place;
+        `memory_keys [B, T, D]` (memory + memory_pos, computed once by the caller) spares a
+        windowed attention that sum."""
         q = query + query_pos
         attended, _ = self.self_attn(q, q, query, need_weights=False)
         query = self.norm1(query + self.drop1(attended))
@@ -76,7 +79,8 @@ class DecoderLayer(nn.Module):
                 raise ValueError("a windowed cross-attention needs the query anchors")
             attended, weights = self.cross_attn(query, query_pos, memory, memory_pos, anchors,
                                                 need_weights=need_weights,
-                                                weights_out=weights_out)
+                                                weights_out=weights_out,
+                                                memory_keys=memory_keys)
         else:
             attended, weights = self.cross_attn(query + query_pos, memory + memory_pos,
                                                 memory, need_weights=need_weights,

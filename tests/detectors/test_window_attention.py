@@ -1,6 +1,7 @@
 """Windowed cross-attention (each query attends to the W x W tokens around its anchor):
 windows placed and clamped on the grid, weights a proper map over every token, the whole-grid
-window equal to dense multi-head attention, both kernels equal, gradients reaching the map."""
+window equal to dense multi-head attention, the folded projections equal to projecting every
+gathered key and value, both kernels equal, gradients reaching the map."""
 
 from __future__ import annotations
 
@@ -74,6 +75,50 @@ def test_a_whole_grid_window_is_dense_multi_head_attention():
     want, want_w = dense(query + pos, memory + memory_pos, memory, average_attn_weights=True)
     torch.testing.assert_close(out, want, rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(weights, want_w, rtol=1e-5, atol=1e-7)
+
+
+def _projected_reference(attn: WindowCrossAttention, query, pos, memory, memory_pos, anchors):
+    """The textbook computation: gather each window, project its keys and values, attend."""
+    b, q, d = query.shape
+    h, dh = attn.n_heads, d // attn.n_heads
+    index = attn.window_index(anchors)                                   # [B, Q, K]
+    rows = torch.stack([memory[i][index[i]] for i in range(b)])          # [B, Q, K, D]
+    keys = attn.k_proj(rows + memory_pos[0][index]).view(b, q, -1, h, dh)
+    vals = attn.v_proj(rows).view(b, q, -1, h, dh)
+    qh = attn.q_proj(query + pos).view(b, q, h, dh)
+    w = (torch.einsum("bqhe,bqkhe->bqhk", qh, keys) / dh ** 0.5).softmax(-1)
+    out = attn.out_proj(torch.einsum("bqhk,bqkhe->bqhe", w, vals).reshape(b, q, d))
+    dense = torch.zeros(b, q, memory.shape[1]).scatter_(2, index, w.mean(2))
+    return out, dense
+
+
+def test_folded_projections_equal_projecting_every_gathered_key_and_value():
+    torch.manual_seed(1)
+    attn = WindowCrossAttention(8, 2, 5, GRID)
+    with torch.no_grad():           # biases that matter if a fold dropped them
+        for lin in (attn.q_proj, attn.k_proj, attn.v_proj, attn.out_proj):
+            lin.bias.normal_()
+    query, pos, memory, memory_pos, anchors = _inputs(b=3, q=7, seed=2)
+    out, weights = attn(query, pos, memory, memory_pos, anchors)
+    want, want_w = _projected_reference(attn, query, pos, memory, memory_pos, anchors)
+    torch.testing.assert_close(out, want, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(weights, want_w, rtol=1e-5, atol=1e-7)
+    # the keys summed once by the caller (the detector's path) give the same
+    keyed, _ = attn(query, pos, memory, memory_pos, anchors,
+                    memory_keys=memory + memory_pos)
+    torch.testing.assert_close(keyed, out, rtol=0, atol=0)
+    # and the same gradients (what training sees); k_proj's bias shifts every logit of a
+    # row alike, so its true gradient is 0 and the fold leaves it out
+    tensors = [query, pos, memory, memory_pos]
+    params = [attn.q_proj.weight, attn.k_proj.weight, attn.v_proj.weight, attn.v_proj.bias]
+    probe = torch.randn(out.shape)
+    grads = []
+    for fn in (lambda *a: attn(*a)[0], lambda *a: _projected_reference(attn, *a)[0]):
+        inputs = [x.detach().clone().requires_grad_(True) for x in tensors]
+        result = fn(*inputs, anchors)
+        grads.append(torch.autograd.grad((result * probe).sum(), inputs + params))
+    for got, ref in zip(*grads, strict=True):
+        torch.testing.assert_close(got, ref, rtol=1e-4, atol=1e-5)
 
 
 def test_gradients_reach_the_token_map_inside_the_windows_only():
