@@ -56,10 +56,13 @@ class AttentionStats:
     min_score: float
     # The rows behind vs_iou and vs_distance (for bootstrap intervals of their trends):
     # final-layer AS [n] of the kept detections, their IoU bin [n] (-1: IoU 0, left out)
-    # and distance bin [n].
+    # and distance bin [n]; and the values binned: IoU [n] with the closest ground truth
+    # and distance [n] from the ego (m).
     final_as: np.ndarray | None = None
     iou_bin: np.ndarray | None = None
     distance_bin: np.ndarray | None = None
+    iou: np.ndarray | None = None
+    distance: np.ndarray | None = None
 
 
 def spread(cov: np.ndarray) -> np.ndarray:
@@ -132,4 +135,4 @@ def attention_stats(dump: Dump, attn_cov: np.ndarray, cell: float, min_score: fl
                          single.T.reshape(-1)),
         n_detections=int(keep.sum()), min_score=float(min_score), final_as=final,
         iou_bin=np.where(positive, np.minimum((iou * 10).astype(int), 9), -1),
-        distance_bin=d_bin)
+        distance_bin=d_bin, iou=iou, distance=dist)

@@ -16,6 +16,8 @@ C classes, G group heads, F frames):
 - `attention_trends(dump, attn_cov [N, L, 2, 2], cell)`: for every layer, AS vs IoU and vs
   distance for one class above a score (the issue: car, score > 0.8), with both rhos and
   the share of rank-deficient C_K.
+- `sample_rho(values, other)`: Spearman's rho over the detections themselves (not the bin
+  medians): how much AS says about IoU or distance, one detection at a time.
 - `collect_outputs(model, seeds)`: the per-query arrays above from a detector's forward
   passes over simulated scenes (final-layer-score order, `max_detections` per frame).
 """
@@ -101,10 +103,23 @@ def trend_interval(values: np.ndarray, bins: np.ndarray, n_bins: int, n_boot: in
     return float(lo), float(hi)
 
 
+def sample_rho(values: np.ndarray, other: np.ndarray) -> float:
+    """Spearman's rho of `values [n]` against `other [n]` over the rows (NaN below 3 rows
+    or when either is constant)."""
+    values, other = np.asarray(values, dtype=np.float64), np.asarray(other, dtype=np.float64)
+    if values.shape != other.shape:
+        raise ValueError(f"values and other must have one shape, got {values.shape} and "
+                         f"{other.shape}")
+    if len(values) < 3 or np.ptp(values) == 0 or np.ptp(other) == 0:
+        return float("nan")
+    return float(spearmanr(values, other).statistic)
+
+
 @dataclass(frozen=True)
 class LayerTrend:
     """Seed 000's statistics at one decoder layer, with the two rhos and their bootstrap
-    95 % intervals over the detections (`trend_interval`)."""
+    95 % intervals over the detections (`trend_interval`), and the two per-detection rhos
+    (`sample_rho`: AS against IoU > 0, AS against distance)."""
 
     layer: int
     stats: AttentionStats
@@ -113,6 +128,8 @@ class LayerTrend:
     rank_deficient: float
     rho_iou_interval: tuple[float, float] = (float("nan"), float("nan"))
     rho_distance_interval: tuple[float, float] = (float("nan"), float("nan"))
+    sample_rho_iou: float = float("nan")
+    sample_rho_distance: float = float("nan")
 
 
 def attention_trends(dump: Dump, attn_cov: np.ndarray, cell: float, class_name: str = "car",
@@ -131,10 +148,13 @@ def attention_trends(dump: Dump, attn_cov: np.ndarray, cell: float, class_name: 
         n = stats.vs_distance.n
         share = float(np.nansum(collapsed * n) / max(n.sum(), 1))
         final, n_iou = stats.final_as, len(stats.vs_iou.labels)
+        positive = stats.iou > 0
         out.append(LayerTrend(
             layer + 1, stats, trend(stats.vs_iou), trend(stats.vs_distance), share,
             trend_interval(final, stats.iou_bin, n_iou),
-            trend_interval(final, stats.distance_bin, len(stats.vs_distance.labels))))
+            trend_interval(final, stats.distance_bin, len(stats.vs_distance.labels)),
+            sample_rho(final[positive], stats.iou[positive]),
+            sample_rho(final, stats.distance)))
     return out
 
 

@@ -160,7 +160,10 @@ def _section_attention(runs: V2Runs, options: V2Options) -> list[str]:
             "ρ: Spearman's rho of the bin medians against the bin order (bins with >= 5 "
             "detections; `-` with fewer than 3 such bins or equal medians); its bootstrap "
             "95 % interval resamples the detections 1000 times (seed 0): a ρ that one small "
-            "bin decides shows as a wide interval. Criteria (issue "
+            "bin decides shows as a wide interval. The per-detection ρ is Spearman's rho "
+            "over the detections themselves (AS against IoU > 0, AS against distance): near "
+            "0, AS says next to nothing about a detection's IoU or distance, and the order "
+            "of five or six bin medians is left to chance. Criteria (issue "
             "13): median AS falls from the lowest to the highest IoU bin with ρ ≤ −0.6, rises "
             "with distance with ρ ≥ 0.6, fewer than 20 % rank-deficient C_K.", "",
             *_trend_block(runs.group, options), *_trend_block(runs.baseline, options),

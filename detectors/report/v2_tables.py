@@ -121,15 +121,18 @@ def _interval(pair: tuple[float, float]) -> str:
 
 def trend_summary_table(trends: Sequence[LayerTrend]) -> str:
     """Per layer: detections, ρ(AS, IoU bin), ρ(AS, distance bin), each with its bootstrap
-    95 % interval over the detections, rank-deficient share."""
+    95 % interval over the detections, rank-deficient share, and the per-detection ρ of AS
+    against IoU and against distance."""
     lines = ["| layer | detections | ρ vs IoU (≤ −0.6) | ρ vs IoU, bootstrap 95 % | "
              "ρ vs distance (≥ 0.6) | ρ vs distance, bootstrap 95 % | "
-             "rank-deficient C_K (< 20 %) |", "|---|---:|---:|---:|---:|---:|---:|"]
+             "rank-deficient C_K (< 20 %) | per-detection ρ(AS, IoU) | "
+             "per-detection ρ(AS, distance) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for t in trends:
         lines.append(f"| {t.layer} | {t.stats.n_detections} | {number(t.rho_iou, 3)} | "
                      f"{_interval(t.rho_iou_interval)} | {number(t.rho_distance, 3)} | "
                      f"{_interval(t.rho_distance_interval)} | "
-                     f"{100 * t.rank_deficient:.1f} % |")
+                     f"{100 * t.rank_deficient:.1f} % | {number(t.sample_rho_iou, 3)} | "
+                     f"{number(t.sample_rho_distance, 3)} |")
     return "\n".join(lines)
 
 

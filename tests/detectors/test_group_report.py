@@ -16,6 +16,7 @@ from detectors.report.groups import (
     collect_outputs,
     inter_group_std,
     per_layer,
+    sample_rho,
     trend,
 )
 
@@ -76,6 +77,21 @@ def test_attention_trends_reads_distance_and_iou_per_layer() -> None:
     assert trends[-1].rho_distance >= 0.6 and trends[-1].rho_iou <= -0.6
     assert trends[-1].rank_deficient == 0.0
     assert trends[-1].stats.n_detections == n
+    # per detection: AS grows with distance and falls with IoU
+    assert trends[-1].sample_rho_distance > 0.5 and trends[-1].sample_rho_iou < -0.3
+    # an AS that ignores both gives per-detection rhos near 0
+    noise = rng.lognormal(size=n)[:, None, None, None] * np.eye(2)
+    flat = attention_trends(dump, np.concatenate([noise, noise], axis=1), cell=1.6)[-1]
+    assert abs(flat.sample_rho_distance) < 0.15 and abs(flat.sample_rho_iou) < 0.15
+
+
+def test_sample_rho_is_spearmans_rho_over_the_rows() -> None:
+    x = np.arange(10.0)
+    assert sample_rho(x, x ** 3) == pytest.approx(1.0)
+    assert sample_rho(x, -np.exp(x)) == pytest.approx(-1.0)
+    assert np.isnan(sample_rho(x[:2], x[:2])) and np.isnan(sample_rho(x, np.ones(10)))
+    with pytest.raises(ValueError, match="one shape"):
+        sample_rho(x, x[:5])
 
 
 def test_collect_outputs_of_a_group_model(tiny_config) -> None:

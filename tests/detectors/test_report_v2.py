@@ -121,7 +121,8 @@ def test_attention_tables_show_the_trends(report: tuple) -> None:
             assert (f"| {t.layer} | {t.stats.n_detections} | {number(t.rho_iou, 3)} | "
                     f"{_interval(t.rho_iou_interval)} | {number(t.rho_distance, 3)} | "
                     f"{_interval(t.rho_distance_interval)} | "
-                    f"{100 * t.rank_deficient:.1f} % |") in page
+                    f"{100 * t.rank_deficient:.1f} % | {number(t.sample_rho_iou, 3)} | "
+                    f"{number(t.sample_rho_distance, 3)} |") in page
             assert trend_verdict(t)[1] in page
 
 
