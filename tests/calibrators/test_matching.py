@@ -129,7 +129,9 @@ def test_random_against_reference_loop(seed, dense, monkeypatch):
         want = reference_match(det_frame, det_labels, det_scores, det_xy, gt_frame, gt_labels,
                                gt_xy, th)
         np.testing.assert_array_equal(got.gt_index, want[0])
-        np.testing.assert_array_equal(got.distance, want[1])
+        # The devkit's per-pair np.linalg.norm is a dot product that numpy may round
+        # differently (numpy 2.4.6: 8 % of random pairs one ulp apart): equal to one ulp.
+        np.testing.assert_array_max_ulp(got.distance, want[1], maxulp=1)
         np.testing.assert_array_equal(got.tp, want[2])
 
 
