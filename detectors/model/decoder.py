@@ -69,8 +69,10 @@ class DecoderLayer(nn.Module):
                 memory_keys: Tensor | None = None) -> DecoderOutput:
         """`anchors [B, Q, 2]` (metres) place a windowed cross-attention's windows;
         `weights_out [B, Q, T]` (zeros) receives a windowed attention's weights in place;
-        `memory_keys [B, T, D]` (memory + memory_pos, computed once by the caller) spares a
-        windowed attention that sum."""
+        `memory_keys [B, T, D]` (memory + memory_pos, computed once by the caller for all
+        its layers) spares this layer that sum."""
+        if memory_keys is None:
+            memory_keys = memory + memory_pos
         q = query + query_pos
         attended, _ = self.self_attn(q, q, query, need_weights=False)
         query = self.norm1(query + self.drop1(attended))
@@ -82,7 +84,7 @@ class DecoderLayer(nn.Module):
                                                 weights_out=weights_out,
                                                 memory_keys=memory_keys)
         else:
-            attended, weights = self.cross_attn(query + query_pos, memory + memory_pos,
+            attended, weights = self.cross_attn(query + query_pos, memory_keys,
                                                 memory, need_weights=need_weights,
                                                 average_attn_weights=True)
         query = self.norm2(query + self.drop2(attended))

@@ -209,11 +209,10 @@ class Detector(nn.Module):
         preds, attention, anchor_list = [], [], []
         # A windowed attention writes its weights straight into one [L, B, Q, T] buffer:
         # stacking per-layer maps afterwards cost ~6 ms of a ~45 ms lidar forward.
-        buffer, keys = None, None
-        if self.config.attn_window:
-            keys = memory + memory_pos     # the windowed layers' keys, summed once for all
-            if need_attention:
-                buffer = memory.new_zeros(len(self.layers), *query.shape[:2], memory.shape[1])
+        keys = memory + memory_pos         # every layer's cross-attention keys, summed once
+        buffer = None
+        if need_attention and self.config.attn_window:
+            buffer = memory.new_zeros(len(self.layers), *query.shape[:2], memory.shape[1])
         for i, (layer, head) in enumerate(zip(self.layers, self.heads, strict=True)):
             query_pos = self.position(anchors)
             out = layer(query, query_pos, memory, memory_pos, need_weights=need_attention,
