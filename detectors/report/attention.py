@@ -16,6 +16,9 @@ Detections taking part: raw final-layer score >= `min_score` (0.3 by default; mo
   10 m rings); final-layer AS;
 - per decoder layer (Fig. 5).
 
+`box_errors` says what sets a kept box's IoU: its centre, yaw, length and width errors
+against that closest ground truth (`detectors.report.v2_why` sets them beside AS).
+
 `Binned` holds one statistic: labels [B] str, n [B], p25 / median / p75 [B] (NaN if empty),
 collapsed [B] share of rank-deficient queries (NaN if empty).
 """
@@ -63,6 +66,8 @@ class AttentionStats:
     distance_bin: np.ndarray | None = None
     iou: np.ndarray | None = None
     distance: np.ndarray | None = None
+    # How far each kept final box is from that closest ground truth (what sets its IoU).
+    errors: BoxErrors | None = None
 
 
 def spread(cov: np.ndarray) -> np.ndarray:
@@ -70,19 +75,60 @@ def spread(cov: np.ndarray) -> np.ndarray:
     return cov[..., 0, 0] * cov[..., 1, 1] - cov[..., 0, 1] * cov[..., 1, 0]
 
 
-def closest_gt_iou(dump: Dump) -> np.ndarray:
-    """`[N]` BEV IoU of each final box with the closest ground truth (centre distance) of
-    its frame; 0 where the frame has no ground truth."""
-    iou = np.zeros(dump.n_detections)
+def closest_gt_index(dump: Dump) -> np.ndarray:
+    """`[N]` index into `dump.gt_*` of the ground truth of its frame closest (BEV centre
+    distance) to each final box; -1 where the frame has no ground truth."""
+    index = np.full(dump.n_detections, -1, dtype=np.int64)
     for f in range(dump.n_frames):
         det = np.flatnonzero(dump.det_frame == f)
         gt = np.flatnonzero(dump.gt_frame == f)
         if len(det) == 0 or len(gt) == 0:
             continue
         diff = dump.final_boxes[det, None, :2] - dump.gt_boxes[None, gt, :2]   # [n, g, 2]
-        nearest = gt[np.argmin(np.hypot(diff[..., 0], diff[..., 1]), axis=1)]
-        iou[det] = paired_bev_iou(dump.final_boxes[det], dump.gt_boxes[nearest])
+        index[det] = gt[np.argmin(np.hypot(diff[..., 0], diff[..., 1]), axis=1)]
+    return index
+
+
+def closest_gt_iou(dump: Dump, index: np.ndarray | None = None) -> np.ndarray:
+    """`[N]` BEV IoU of each final box with the closest ground truth (centre distance) of
+    its frame; 0 where the frame has no ground truth. `index` is `closest_gt_index(dump)`
+    when the caller has it."""
+    index = closest_gt_index(dump) if index is None else index
+    iou = np.zeros(dump.n_detections)
+    has = index >= 0
+    if has.any():
+        iou[has] = paired_bev_iou(dump.final_boxes[has], dump.gt_boxes[index[has]])
     return iou
+
+
+@dataclass(frozen=True)
+class BoxErrors:
+    """How far each final box is from its closest ground truth (`closest_gt_index`), `[n]`
+    each, NaN where the frame has no ground truth: BEV `centre` distance (m), `yaw`
+    |difference| wrapped to [0, pi] (rad), `length` and `width` |difference| (m)."""
+
+    centre: np.ndarray
+    yaw: np.ndarray
+    length: np.ndarray
+    width: np.ndarray
+
+    def select(self, rows: np.ndarray) -> BoxErrors:
+        """The errors of `rows` (bool mask or indices)."""
+        return BoxErrors(self.centre[rows], self.yaw[rows], self.length[rows],
+                         self.width[rows])
+
+
+def box_errors(dump: Dump, index: np.ndarray | None = None) -> BoxErrors:
+    """`BoxErrors` of `dump`'s final boxes (`index` as in `closest_gt_iou`)."""
+    index = closest_gt_index(dump) if index is None else index
+    out = np.full((4, dump.n_detections), np.nan)
+    has = index >= 0
+    det, gt = dump.final_boxes[has], dump.gt_boxes[index[has]]
+    out[0, has] = np.hypot(det[:, 0] - gt[:, 0], det[:, 1] - gt[:, 1])
+    out[1, has] = np.abs((det[:, 6] - gt[:, 6] + np.pi) % (2 * np.pi) - np.pi)
+    out[2, has] = np.abs(det[:, 4] - gt[:, 4])
+    out[3, has] = np.abs(det[:, 3] - gt[:, 3])
+    return BoxErrors(*out)
 
 
 def binned(values: np.ndarray, groups: np.ndarray, n_groups: int, labels: tuple[str, ...],
@@ -113,7 +159,8 @@ def attention_stats(dump: Dump, attn_cov: np.ndarray, cell: float, min_score: fl
     as_layers = spread(attn_cov[keep] + np.eye(2) * floor)         # [n, L]
     single = spread(attn_cov[keep]) < 1e-6 * floor ** 2             # [n, L] rank-deficient
     final, final_single = as_layers[:, -1], single[:, -1]
-    iou = closest_gt_iou(dump)[keep]
+    index = closest_gt_index(dump)
+    iou = closest_gt_iou(dump, index)[keep]
     positive = iou > 0
     iou_bin = np.minimum((iou[positive] * 10).astype(int), 9)
     iou_labels = tuple(f"{a:.1f}-{b:.1f}" for a, b in zip(IOU_EDGES[:-1], IOU_EDGES[1:],
@@ -135,4 +182,5 @@ def attention_stats(dump: Dump, attn_cov: np.ndarray, cell: float, min_score: fl
                          single.T.reshape(-1)),
         n_detections=int(keep.sum()), min_score=float(min_score), final_as=final,
         iou_bin=np.where(positive, np.minimum((iou * 10).astype(int), 9), -1),
-        distance_bin=d_bin, iou=iou, distance=dist)
+        distance_bin=d_bin, iou=iou, distance=dist,
+        errors=box_errors(dump, index).select(keep))

@@ -4,7 +4,8 @@
 group model) and `v2_page(runs, options, command, seconds)` writes the markdown: header
 (command, scene counts, weights name + sha256 prefix), 1. mAP / per-class AP, 2. class
 switches per layer transition, 3. inter-group std of x, y, z per layer, 4. attention-spread
-trends (both models), 5. covariance sources of the group model, raw vs depth-scaled.
+trends (both models) and the box errors that separate their IoU bins, 5. covariance sources
+of the group model, raw vs depth-scaled.
 Every number on the page comes from these runs.
 """
 
@@ -30,6 +31,7 @@ from detectors.report.v2_tables import (
     trend_summary_table,
     trend_verdict,
 )
+from detectors.report.v2_why import error_bins_table, error_rho_table, error_rhos, why_sentence
 from detectors.report.v2_window import WindowProbe, probe_table, probe_windows
 
 
@@ -150,7 +152,16 @@ def _trend_block(run: ModelRun, options: V2Options) -> list[str]:
             "AS vs IoU with the closest ground truth (IoU > 0):", "",
             trend_bins_table(run.trends, "iou"), "",
             "AS vs distance from the ego:", "", trend_bins_table(run.trends, "distance"), "",
-            *[v for _, v in verdicts], "", overall, ""]
+            *[v for _, v in verdicts], "", overall, "", *_why_block(run)]
+
+
+def _why_block(run: ModelRun) -> list[str]:
+    """What separates the final layer's IoU bins (`v2_why`)."""
+    stats = run.trends[-1].stats
+    return ["What separates the IoU bins (final layer; errors of the final box against the "
+            "closest ground truth, medians per bin):", "",
+            error_bins_table(stats, run.token_cell), "",
+            error_rho_table(error_rhos(stats)), "", why_sentence(stats, run.token_cell), ""]
 
 
 def _section_attention(runs: V2Runs, options: V2Options) -> list[str]:

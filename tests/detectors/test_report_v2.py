@@ -33,6 +33,7 @@ from detectors.report.tables import number
 from detectors.report.v2 import V2Options, V2Runs, measure_v2, v2_page
 from detectors.report.v2_cov import SourceRows, SourceSkip, source_rows, source_table
 from detectors.report.v2_tables import _interval, kept_queries, trend_verdict
+from detectors.report.v2_why import error_bins_table, error_rho_table, error_rhos, why_sentence
 from detectors.sim import SPLITS
 
 N_TEST, N_VAL = 2, 2
@@ -124,6 +125,10 @@ def test_attention_tables_show_the_trends(report: tuple) -> None:
                     f"{100 * t.rank_deficient:.1f} % | {number(t.sample_rho_iou, 3)} | "
                     f"{number(t.sample_rho_distance, 3)} |") in page
             assert trend_verdict(t)[1] in page
+        final = run.trends[-1].stats      # what separates the IoU bins, from the numbers
+        assert error_bins_table(final, run.token_cell) in page
+        assert error_rho_table(error_rhos(final)) in page
+        assert why_sentence(final, run.token_cell) in page
 
 
 def test_a_trend_one_small_bin_decides_has_a_wide_bootstrap_interval() -> None:
