@@ -105,17 +105,20 @@ def closest_gt_iou(dump: Dump, index: np.ndarray | None = None) -> np.ndarray:
 class BoxErrors:
     """How far each final box is from its closest ground truth (`closest_gt_index`), `[n]`
     each, NaN where the frame has no ground truth: BEV `centre` distance (m), `yaw`
-    |difference| wrapped to [0, pi] (rad), `length` and `width` |difference| (m)."""
+    |difference| wrapped to [0, pi] (rad), `length` and `width` |difference| (m);
+    `layer_centre [n, L]` the BEV centre distance of every decoder layer's box to that same
+    ground truth (the last column is `centre`)."""
 
     centre: np.ndarray
     yaw: np.ndarray
     length: np.ndarray
     width: np.ndarray
+    layer_centre: np.ndarray
 
     def select(self, rows: np.ndarray) -> BoxErrors:
         """The errors of `rows` (bool mask or indices)."""
         return BoxErrors(self.centre[rows], self.yaw[rows], self.length[rows],
-                         self.width[rows])
+                         self.width[rows], self.layer_centre[rows])
 
 
 def box_errors(dump: Dump, index: np.ndarray | None = None) -> BoxErrors:
@@ -128,7 +131,10 @@ def box_errors(dump: Dump, index: np.ndarray | None = None) -> BoxErrors:
     out[1, has] = np.abs((det[:, 6] - gt[:, 6] + np.pi) % (2 * np.pi) - np.pi)
     out[2, has] = np.abs(det[:, 4] - gt[:, 4])
     out[3, has] = np.abs(det[:, 3] - gt[:, 3])
-    return BoxErrors(*out)
+    layers = np.full(dump.det_boxes.shape[:2], np.nan)                       # [N, L]
+    diff = dump.det_boxes[has, :, :2] - gt[:, None, :2]
+    layers[has] = np.hypot(diff[..., 0], diff[..., 1])
+    return BoxErrors(*out, layer_centre=layers)
 
 
 def binned(values: np.ndarray, groups: np.ndarray, n_groups: int, labels: tuple[str, ...],

@@ -11,7 +11,9 @@ attention over those cells has little room to tell them apart. So, for one layer
   absolute yaw and length errors), the median distance from the ego and the median AS;
 - `error_rhos(stats)` -> `{name: (ρ(AS, x), ρ(IoU, x))}` over the detections with IoU > 0,
   x in `ERROR_NAMES` (Spearman, `groups.sample_rho`), and `error_rho_table` to print them;
-- `why_sentence(stats, cell)`: the reading of those numbers, stated from them (over the
+- `why_sentence(stats, cell)`: the reading of those numbers, stated from them, with the
+  median centre error after each decoder layer (how much localising the later layers' attention
+  still does) (over the
   bins with >= `v2_tables.MIN_BIN` detections, those the trend's ρ reads).
 
 Needs `stats.errors` (set by `attention.attention_stats`); ValueError without it.
@@ -104,12 +106,15 @@ def why_sentence(stats: AttentionStats, cell: float) -> str:
     strongest = max(weight, key=weight.__getitem__)
     error = max(("centre", "yaw", "length", "width"), key=weight.__getitem__)
     as_med = float(np.median(c["as"]))
+    layers = np.median(stats.errors.layer_centre[stats.iou > 0], axis=0)   # [L]
+    per_layer = " / ".join(f"{v:.3f}" for v in layers)
     text = (f"{len(c['as'])} detections with IoU > 0; the lowest IoU bin with "
             f"{MIN_BIN} or more is {lo_label}. "
             f"From bin {lo_label} to bin {hi_label} the median centre error falls from "
             f"{ce_lo:.2f} m to {ce_hi:.2f} m, {ce_lo / cell:.2f} to {ce_hi / cell:.2f} of a "
             f"{cell:g} m token cell; per detection the IoU follows the box errors "
-            f"({iou_by}). The median AS, {number(as_med, 3)} m⁴, is an attention spread of "
+            f"({iou_by}). Median centre error after each decoder layer: {per_layer} m. "
+            f"The median AS, {number(as_med, 3)} m⁴, is an attention spread of "
             f"{as_med ** 0.25:.2f} m (AS^¼, the geometric mean of C_K's two standard "
             f"deviations). ")
     if weight[strongest] < WEAK_RHO:

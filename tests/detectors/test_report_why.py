@@ -26,11 +26,12 @@ CAR = [2.0, 4.5, 1.6]   # w l h
 
 def _dump(det: np.ndarray, gt: np.ndarray, det_frame: np.ndarray, gt_frame: np.ndarray,
           n_frames: int) -> Dump:
-    logits = np.full((len(det), 1, 2), -6.0)
+    boxes = det[:, None] if det.ndim == 2 else det              # [N, L, 9]
+    logits = np.full((*boxes.shape[:2], 2), -6.0)
     logits[:, :, 0] = 4.0                                    # confident cars
     return Dump(classes=("car", "pedestrian"), score_mode="sigmoid",
                 frame_ids=np.array([f"f{i}" for i in range(n_frames)]), det_frame=det_frame,
-                det_logits=logits, det_boxes=det[:, None], gt_frame=gt_frame,
+                det_logits=logits, det_boxes=boxes, gt_frame=gt_frame,
                 gt_labels=np.zeros(len(gt), dtype=np.int64), gt_boxes=gt)
 
 
@@ -56,8 +57,16 @@ def test_box_errors_against_the_closest_ground_truth() -> None:
     iou = closest_gt_iou(dump)
     assert iou[2] == 0 and 0 < iou[1] < iou[0] < 1
     np.testing.assert_array_equal(closest_gt_iou(dump, index), iou)
+    np.testing.assert_array_equal(e.layer_centre[:, -1], e.centre)
     picked = e.select(np.array([False, True, False]))
     assert picked.centre.tolist() == [1.0] and picked.width.tolist() == [0.5]
+    # every layer's centre against the final box's closest ground truth
+    layered = np.stack([det + np.r_[3.0, 4.0, np.zeros(7)], det], axis=1)   # layer 1: +5 m
+    e2 = box_errors(_dump(layered, gt, np.array([0, 0, 2]), np.array([0, 0, 1]), 3))
+    assert e2.layer_centre.shape == (3, 2)
+    np.testing.assert_allclose(e2.layer_centre[:2, 1], [0.5, 1.0])
+    np.testing.assert_allclose(e2.layer_centre[0, 0], np.hypot(3.3, 4.4))
+    assert np.isnan(e2.layer_centre[2]).all()
 
 
 def _stats(as_of_shift: bool, n: int = 400) -> AttentionStats:
@@ -108,6 +117,7 @@ def test_why_sentence_states_what_the_numbers_say() -> None:
     noise = why_sentence(_stats(as_of_shift=False), 0.8)
     assert "AS carries next to nothing of the errors that set IoU" in noise
     assert "of a 0.8 m token cell" in noise
+    assert "Median centre error after each decoder layer: " in noise
 
 
 def test_stats_without_box_errors_are_refused() -> None:
