@@ -176,7 +176,12 @@ def _section_attention(runs: V2Runs, options: V2Options) -> list[str]:
             "0, AS says next to nothing about a detection's IoU or distance, and the order "
             "of five or six bin medians is left to chance. Criteria (issue "
             "13): median AS falls from the lowest to the highest IoU bin with ρ ≤ −0.6, rises "
-            "with distance with ρ ≥ 0.6, fewer than 20 % rank-deficient C_K.", "",
+            "with distance with ρ ≥ 0.6, fewer than 20 % rank-deficient C_K. After each "
+            "model's trend tables: what separates its IoU bins (the final box's errors "
+            "against the closest ground truth, in metres and token cells, and the centre "
+            "error after every decoder layer) and how much of each error AS carries, one "
+            "detection at a time. The runs trained with other seeds, windows and hardware "
+            "are compared in docs/detectors.md (sessions 8-10).", "",
             *_trend_block(runs.group, options), *_trend_block(runs.baseline, options),
             *_section_window(runs)]
 
