@@ -103,38 +103,41 @@ def closest_gt_iou(dump: Dump, index: np.ndarray | None = None) -> np.ndarray:
 
 @dataclass(frozen=True)
 class BoxErrors:
-    """How far each final box is from its closest ground truth (`closest_gt_index`), `[n]`
-    each, NaN where the frame has no ground truth: BEV `centre` distance (m), `yaw`
-    |difference| wrapped to [0, pi] (rad), `length` and `width` |difference| (m);
-    `layer_centre [n, L]` the BEV centre distance of every decoder layer's box to that same
-    ground truth (the last column is `centre`)."""
+    """How far each box is from the ground truth closest to its final box
+    (`closest_gt_index`), NaN where the frame has no ground truth: `layer_centre [n, L]` the
+    BEV centre distance of every decoder layer's box (m), and of the final box `yaw`
+    |difference| wrapped to [0, pi] (rad), `length` and `width` |difference| (m), `[n]`
+    each; `centre [n]` is the final layer's column of `layer_centre`."""
 
-    centre: np.ndarray
+    layer_centre: np.ndarray
     yaw: np.ndarray
     length: np.ndarray
     width: np.ndarray
-    layer_centre: np.ndarray
+
+    @property
+    def centre(self) -> np.ndarray:
+        """`[n]` BEV centre distance of the final box (m)."""
+        return self.layer_centre[:, -1]
 
     def select(self, rows: np.ndarray) -> BoxErrors:
         """The errors of `rows` (bool mask or indices)."""
-        return BoxErrors(self.centre[rows], self.yaw[rows], self.length[rows],
-                         self.width[rows], self.layer_centre[rows])
+        return BoxErrors(self.layer_centre[rows], self.yaw[rows], self.length[rows],
+                         self.width[rows])
 
 
 def box_errors(dump: Dump, index: np.ndarray | None = None) -> BoxErrors:
     """`BoxErrors` of `dump`'s final boxes (`index` as in `closest_gt_iou`)."""
     index = closest_gt_index(dump) if index is None else index
-    out = np.full((4, dump.n_detections), np.nan)
     has = index >= 0
     det, gt = dump.final_boxes[has], dump.gt_boxes[index[has]]
-    out[0, has] = np.hypot(det[:, 0] - gt[:, 0], det[:, 1] - gt[:, 1])
-    out[1, has] = np.abs((det[:, 6] - gt[:, 6] + np.pi) % (2 * np.pi) - np.pi)
-    out[2, has] = np.abs(det[:, 4] - gt[:, 4])
-    out[3, has] = np.abs(det[:, 3] - gt[:, 3])
     layers = np.full(dump.det_boxes.shape[:2], np.nan)                       # [N, L]
     diff = dump.det_boxes[has, :, :2] - gt[:, None, :2]
     layers[has] = np.hypot(diff[..., 0], diff[..., 1])
-    return BoxErrors(*out, layer_centre=layers)
+    out = np.full((3, dump.n_detections), np.nan)
+    out[0, has] = np.abs((det[:, 6] - gt[:, 6] + np.pi) % (2 * np.pi) - np.pi)
+    out[1, has] = np.abs(det[:, 4] - gt[:, 4])
+    out[2, has] = np.abs(det[:, 3] - gt[:, 3])
+    return BoxErrors(layers, *out)
 
 
 def binned(values: np.ndarray, groups: np.ndarray, n_groups: int, labels: tuple[str, ...],

@@ -64,10 +64,10 @@ def error_rho_table(rhos: dict[str, tuple[float, float]]) -> str:
     return "\n".join(lines)
 
 
-def _bins(stats: AttentionStats, min_n: int = 1) -> list[tuple[str, np.ndarray]]:
-    """(label, row mask over `_columns`) of every IoU bin with >= `min_n` detections, low
-    to high."""
-    c = _columns(stats)
+def _bins(stats: AttentionStats, c: dict[str, np.ndarray], min_n: int = 1
+          ) -> list[tuple[str, np.ndarray]]:
+    """(label, row mask over `c = _columns(stats)`) of every IoU bin with >= `min_n`
+    detections, low to high."""
     labels = stats.vs_iou.labels
     bins = np.minimum((c["iou"] * len(labels)).astype(int), len(labels) - 1)
     return [(label, bins == b) for b, label in enumerate(labels)
@@ -80,7 +80,7 @@ def error_bins_table(stats: AttentionStats, cell: float) -> str:
     lines = [f"| IoU | n | centre error (m) | centre error / cell ({cell:g} m) | "
              "yaw error (deg) | length error (m) | distance (m) | AS (m⁴) |",
              "|---|---:|---:|---:|---:|---:|---:|---:|"]
-    for label, rows in _bins(stats):
+    for label, rows in _bins(stats, c):
         m = {k: float(np.median(v[rows])) for k, v in c.items()}
         lines.append(f"| {label} | {int(rows.sum())} | {m['centre']:.3f} | "
                      f"{m['centre'] / cell:.2f} | {np.degrees(m['yaw']):.1f} | "
@@ -91,7 +91,7 @@ def error_bins_table(stats: AttentionStats, cell: float) -> str:
 def why_sentence(stats: AttentionStats, cell: float) -> str:
     """What the box errors and the per-detection ρs say about the IoU trend."""
     c = _columns(stats)
-    bins = _bins(stats, MIN_BIN)     # the bins the trend's rho reads
+    bins = _bins(stats, c, MIN_BIN)     # the bins the trend's rho reads
     if len(bins) < 2:
         return (f"Fewer than two IoU bins hold {MIN_BIN} detections or more: nothing to "
                 "compare.")
