@@ -13,13 +13,13 @@ ENV PYTHONDONTWRITEBYTECODE=1 \
 
 WORKDIR /opt/detcal
 
-# CPU-only torch: the constraints file pins the version, the CPU index provides the wheel.
-COPY pyproject.toml constraints.txt README.md ./
+# Versions from the lock (torch pinned there too); the CPU index provides the CPU-only torch wheel.
+COPY pyproject.toml requirements.lock README.md ./
 COPY app ./app
 COPY calibrators ./calibrators
 COPY detectors ./detectors
 RUN pip install --extra-index-url https://download.pytorch.org/whl/cpu \
-        -c constraints.txt ".[detectors,service]" \
+        -c requirements.lock ".[detectors,service]" \
     && useradd --create-home --uid 10001 detcal \
     && mkdir -p /data && chown detcal:detcal /data
 

@@ -44,16 +44,41 @@ def test_copied_paths_exist():
                 assert (ROOT / src).exists(), f"Dockerfile copies {src}, which is missing"
 
 
-def test_install_uses_constraints_and_existing_extras():
+def test_install_uses_the_lock_and_existing_extras():
     run = " ".join(rest for op, rest in _instructions() if op == "RUN")
-    assert "-c constraints.txt" in run
+    assert "-c requirements.lock" in run
     extras = re.search(r'"\.\[([a-z,]+)\]"', run)
     assert extras
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
     for extra in extras.group(1).split(","):
         assert extra in project["optional-dependencies"], extra
-    assert "torch" in (ROOT / "constraints.txt").read_text()
+    assert "torch==2.13.0\n" in (ROOT / "requirements.lock").read_text()
     assert "download.pytorch.org/whl/cpu" in run          # CPU-only torch wheel
+
+
+def _requirement_name(spec: str) -> str:
+    return re.split(r"[<>=!~;\[ ]", spec, maxsplit=1)[0].strip().lower().replace("_", "-")
+
+
+def test_the_lock_pins_every_declared_dependency_exactly():
+    """Every runtime and test dependency of every extra has one `==` pin in the lock, and the
+    Makefile installs from it (what `.ci/run` calls)."""
+    lines = [ln for ln in (ROOT / "requirements.lock").read_text().splitlines()
+             if ln and not ln.startswith("#")]
+    pins = {}
+    for line in lines:
+        name, sep, version = line.partition("==")
+        assert sep and version and " " not in version, f"not an exact pin: {line!r}"
+        pins[_requirement_name(name)] = version
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    declared = list(project["dependencies"])
+    for extra in project["optional-dependencies"].values():
+        declared += [d for d in extra if not d.startswith("detcal[")]
+    missing = sorted({_requirement_name(d) for d in declared} - set(pins))
+    assert not missing, f"declared but not locked: {missing}"
+    makefile = (ROOT / "Makefile").read_text()
+    assert "-c $(LOCK)" in makefile and "LOCK := requirements.lock" in makefile
+    assert "make test" in (ROOT / ".ci" / "run").read_text()
 
 
 def test_cmd_is_detcal_serve_with_existing_options():
