@@ -10,6 +10,7 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
+from fastapi_offline import FastAPIOffline
 
 from app.arrow_fast import ArrowCalibrateMiddleware
 from app.body import install_openapi
@@ -90,8 +91,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.calibrator.close()
             store.close()
 
-    app = FastAPI(title="detcal", version=detcal_version(), description=DESCRIPTION,
-                  lifespan=lifespan, dependencies=[Depends(refuse_empty_form_fields)])
+    # /docs and /redoc load Swagger UI and ReDoc from the installed package, never a CDN.
+    app = FastAPIOffline(title="detcal", version=detcal_version(), description=DESCRIPTION,
+                         lifespan=lifespan, dependencies=[Depends(refuse_empty_form_fields)])
     app.state.settings = settings
     app.state.metrics = ServiceMetrics()
     app.state.detectors = DetectorService()
