@@ -12,9 +12,11 @@ store connection and profile cache.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Literal
 
+import pyarrow as pa
 from fastapi.exceptions import RequestValidationError
 
 from app.body import dumps_json, parse_json
@@ -36,6 +38,8 @@ from calibrators.io.arrow_batch import (
 )
 
 CallKind = Literal["calibrate", "nuscenes", "arrow"]
+log = logging.getLogger("detcal.calibrate")
+_UNAVAILABLE = dumps_json({"detail": "the Arrow body could not be processed now; retry it"})
 
 
 @dataclass(frozen=True)
@@ -77,11 +81,29 @@ class CalibrateEngine:
             if call.kind == "nuscenes":
                 return self._nuscenes(call)
             if call.kind == "arrow":
-                return self._arrow(call)
+                return self._arrow_guarded(call)
             return self._calibrate(call)
         except (RequestValidationError, RequestError, NotFoundError) as exc:
             status, body = error_body(exc)
             return CallOutcome(status, dumps_json(body))
+
+    def _arrow_guarded(self, call: CalibrateCall) -> CallOutcome:
+        """`_arrow(call)`, where a library error the reader did not name (pyarrow, numpy) is
+        a 422 at the body, running out of memory a 503, and anything else a logged 503:
+        client bytes never make a 500."""
+        try:
+            return self._arrow(call)
+        except (RequestValidationError, RequestError, NotFoundError):
+            raise
+        except (pa.ArrowException, ValueError, TypeError, IndexError, OverflowError) as exc:
+            raise RequestError(["body"], f"the Arrow batch could not be read: "
+                                         f"{str(exc)[:300]}") from None
+        except MemoryError:
+            log.error("out of memory on an Arrow calibrate body of %d bytes", len(call.body))
+            return CallOutcome(503, _UNAVAILABLE)
+        except Exception:
+            log.exception("Arrow calibrate body of %d bytes failed", len(call.body))
+            return CallOutcome(503, _UNAVAILABLE)
 
     def _calibrate(self, call: CalibrateCall) -> CallOutcome:
         parsed = parse_json(CalibrateRequest, call.body)
@@ -157,6 +179,8 @@ def _batch_error(exc: FieldError, ref: str | None = None) -> RequestError:
         return RequestError(["query", exc.field, *row], str(exc))
     if exc.field == "rows":
         return RequestError(["body"], f"{exc} (DETCAL_MAX_DETECTIONS): split it", status=413)
+    if exc.field == "bytes":
+        return RequestError(["body"], f"{exc}: split it", status=413)
     if exc.field == "body":
         return RequestError(["body"], str(exc))
     column = LIBRARY_TO_COLUMN.get(exc.field, exc.field)

@@ -1,6 +1,6 @@
 """Calibrate requests run where they cannot stall the server: small bodies in a thread of the
-server process (small Arrow bodies on the event loop itself), large ones in calibrate worker
-processes.
+server process (small uncompressed Arrow bodies on the event loop itself), large ones in
+calibrate worker processes.
 
 Parsing a large JSON body and building its response are Python work that holds the GIL in
 long stretches (pydantic-core validates 20,000 detections in ~0.25 s in one call that never
@@ -12,7 +12,8 @@ stay in a thread: the round trip to a process would cost more than the parse.
 
 The pool starts on the first large request (tests and small clients never pay for it). A
 worker that dies (killed, out of memory) fails its request with a 503 and the pool is
-replaced for the next one.
+replaced for the next one. Workers die with the server, even when it is killed with SIGKILL
+(`app.parent_watch`).
 """
 
 from __future__ import annotations
@@ -21,6 +22,7 @@ import asyncio
 import gc
 import logging
 import multiprocessing
+import os
 import threading
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
@@ -30,23 +32,28 @@ from starlette.concurrency import run_in_threadpool
 from app.body import dumps_json
 from app.cache import ProfileCache
 from app.calibrate_calls import CalibrateCall, CalibrateEngine, CallOutcome
+from app.parent_watch import die_with_parent
 from app.prometheus import ServiceMetrics
 from app.settings import Settings
 from app.store import Store
+from calibrators.io.arrow_safe import plain_stream
 
 log = logging.getLogger("detcal.offload")
 
 _ENGINE: CalibrateEngine | None = None   # the engine of a worker process
-#: Arrow bodies up to this size (~1,200 detections) are calibrated on the event loop: reading
-#: them is zero-copy and their whole calibration (~0.4 ms at 300 detections, ~1.5 ms here)
-#: costs about what handing them to a worker thread and back does; `/healthz` waits at most
-#: that long behind one.
+#: Uncompressed Arrow bodies up to this size (~1,200 detections) are calibrated on the event
+#: loop: reading them is zero-copy and their whole calibration (~0.4 ms at 300 detections,
+#: ~1.5 ms here) costs about what handing them to a worker thread and back does; `/healthz`
+#: waits at most that long behind one. A compressed body (it may inflate to
+#: `MAX_INFLATED_BYTES`) or one whose headers do not parse always goes to a thread.
 INLINE_ARROW_BYTES = 256 * 1024
 
 
-def _worker_init(settings: Settings) -> None:
-    """Open the store and a profile cache in a new worker process."""
+def _worker_init(settings: Settings, parent_pid: int) -> None:
+    """Tie a new worker process's life to the server's (`parent_pid`), then open the store and
+    a profile cache in it."""
     global _ENGINE
+    die_with_parent(parent_pid)
     store = Store(settings.sqlalchemy_url, settings.dumps_dir)
     _ENGINE = CalibrateEngine(ProfileCache(store), settings.default_profile,
                               settings.max_detections)
@@ -87,7 +94,8 @@ class CalibrateRunner:
 
     async def run(self, call: CalibrateCall) -> CallOutcome:
         """The outcome of `call`, computed off the event loop."""
-        if call.kind == "arrow" and len(call.body) <= INLINE_ARROW_BYTES:
+        if (call.kind == "arrow" and len(call.body) <= INLINE_ARROW_BYTES
+                and plain_stream(call.body)):
             return self.engine.run(call)
         if not self.offloads(call):
             return await run_in_threadpool(self.engine.run, call)
@@ -105,7 +113,7 @@ class CalibrateRunner:
             if self._pool is None:
                 self._pool = ProcessPoolExecutor(
                     max_workers=self.processes, mp_context=multiprocessing.get_context("spawn"),
-                    initializer=_worker_init, initargs=(self.settings,))
+                    initializer=_worker_init, initargs=(self.settings, os.getpid()))
             return self._pool
 
     def _discard(self, pool: ProcessPoolExecutor) -> None:

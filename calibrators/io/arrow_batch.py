@@ -37,6 +37,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 
 from calibrators.exceptions import FieldError
+from calibrators.io.arrow_safe import MAX_INFLATED_BYTES, read_safe_stream
 from calibrators.serving import CalibratedDetections
 
 ARROW_STREAM = "application/vnd.apache.arrow.stream"
@@ -65,25 +66,13 @@ class BatchRequest:
         return len(next(iter(self.echo.values())))
 
 
-def read_stream(data: bytes, max_rows: int | None = None) -> pa.RecordBatch:
-    """The one record batch of an Arrow IPC stream (several batches are concatenated); a
-    FieldError("body") if `data` is not an Arrow stream, or ("body", row count) above
-    `max_rows` (checked from the batch headers before any column is read)."""
-    try:
-        reader = pa.ipc.open_stream(pa.BufferReader(data))
-        batches = list(reader)
-    except (pa.ArrowInvalid, pa.ArrowException, OSError) as exc:
-        raise FieldError("body", f"not an Arrow IPC stream: {exc}") from None
-    rows = sum(b.num_rows for b in batches)
-    if max_rows is not None and rows > max_rows:
-        raise FieldError("rows", f"the batch has {rows} rows (detections); at most {max_rows} "
-                                 f"are calibrated per request")
-    if not batches:
-        raise FieldError("body", "the Arrow stream holds no record batch")
-    if len(batches) == 1:
-        return batches[0]
-    table = pa.Table.from_batches(batches, schema=reader.schema).combine_chunks()
-    return table.to_batches()[0] if table.num_rows else batches[0]
+def read_stream(data: bytes, max_rows: int | None = None,
+                max_bytes: int = MAX_INFLATED_BYTES) -> pa.RecordBatch:
+    """The one record batch of an Arrow IPC stream (several batches are concatenated),
+    read by `arrow_safe.read_safe_stream`: rows and decoded bytes capped batch by batch
+    before decoding (FieldError "rows" / "bytes"), every batch validated in full, the echoed
+    identity columns copied; FieldError naming the column (or "body") otherwise."""
+    return read_safe_stream(data, max_rows, max_bytes)
 
 
 def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> BatchRequest:
