@@ -20,6 +20,7 @@ from app.calibrate_calls import CalibrateEngine
 from app.dashboard.page import DashboardRenderer
 from app.deps import AdminBeforeBodyMiddleware, refuse_empty_form_fields
 from app.errors import install_handlers
+from app.head import HeadAsGetMiddleware
 from app.jobs import JobRunner
 from app.limits import BodySizeLimitMiddleware
 from app.offload import CalibrateRunner
@@ -109,4 +110,5 @@ def create_app(settings: Settings | None = None) -> FastAPI:
                        upload_bytes=settings.max_upload_bytes)
     app.add_middleware(AdminBeforeBodyMiddleware)
     app.add_middleware(MetricsMiddleware, metrics=app.state.metrics)
+    app.add_middleware(HeadAsGetMiddleware)   # outermost: HEAD wherever GET is allowed
     return app

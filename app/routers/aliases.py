@@ -38,9 +38,9 @@ def set_alias(name: ProfileName, alias: AliasPath,
               body: Annotated[AliasIn, Depends(json_body(AliasIn))], store: StoreDep,
               token: AdminIdDep) -> AliasOut:
     """Point an alias at a version (create or move it); `champion` activates the version."""
-    previous = next((a.version for a in store.aliases(name) if a.alias == alias), None)
+    # the store adds `previous`, read in the write's own transaction
     audit = AuditEntry("activate" if alias == CHAMPION else "alias", f"{name}@{alias}", token,
-                       {"version": body.version, "previous": previous})
+                       {"version": body.version})
     return _out(store.set_alias(name, alias, body.version, audit))
 
 
@@ -49,11 +49,10 @@ def set_alias(name: ProfileName, alias: AliasPath,
                                                      422: {"model": ErrorResponse}})
 def delete_alias(name: ProfileName, alias: AliasPath, store: StoreDep, token: AdminIdDep
                  ) -> AliasOut:
-    """Remove an alias (not `champion`: activate another version instead); the removed one."""
+    """Remove an alias; the removed one (409 for `champion`: activate another version)."""
     if alias == CHAMPION:
         raise RequestError(["path", "alias"], "champion is the active version and cannot be "
                                               "deleted; activate another version instead",
                            status=409)
-    previous = next((a.version for a in store.aliases(name) if a.alias == alias), None)
-    audit = AuditEntry("alias.delete", f"{name}@{alias}", token, {"previous": previous})
+    audit = AuditEntry("alias.delete", f"{name}@{alias}", token)   # the store adds `previous`
     return _out(store.delete_alias(name, alias, audit))

@@ -1,4 +1,7 @@
-"""GET /v1/jobs/{id}: a fit job's state, progress, and the version and report it produced."""
+"""GET /v1/jobs/{id}: a fit job's state, progress, and the version and report it produced.
+
+Jobs carry fit options and error text: reading them takes the admin or the feedback token
+(the feedback token's requests may queue a challenger fit whose id they are given)."""
 
 from __future__ import annotations
 
@@ -7,12 +10,13 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query
 
-from app.deps import StoreDep
+from app.deps import FeedbackIdDep, StoreDep
 from app.schemas.common import ErrorResponse, ProfileRef
 from app.schemas.profiles import JobOut
 from app.store import JobRecord, Store
 
 router = APIRouter(prefix="/v1/jobs", tags=["fit"])
+TOKEN_ERRORS = {code: {"model": ErrorResponse} for code in (401, 403)}
 
 
 def job_out(store: Store, job: JobRecord) -> JobOut:
@@ -25,13 +29,15 @@ def job_out(store: Store, job: JobRecord) -> JobOut:
     return out
 
 
-@router.get("")
-def list_jobs(store: StoreDep, limit: Annotated[int, Query(ge=1, le=100)] = 20) -> list[JobOut]:
+@router.get("", responses=TOKEN_ERRORS)
+def list_jobs(store: StoreDep, _: FeedbackIdDep,
+              limit: Annotated[int, Query(ge=1, le=100)] = 20) -> list[JobOut]:
     """The newest fit jobs, newest first (without reports)."""
     return [JobOut.model_validate(j, from_attributes=True) for j in store.recent_jobs(limit)]
 
 
-@router.get("/{job_id}", responses={404: {"model": ErrorResponse}})
-def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], store: StoreDep) -> JobOut:
+@router.get("/{job_id}", responses={404: {"model": ErrorResponse}, **TOKEN_ERRORS})
+def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], store: StoreDep,
+            _: FeedbackIdDep) -> JobOut:
     """State, progress and error of a fit job; its version and report when it succeeded."""
     return job_out(store, store.get_job(job_id))

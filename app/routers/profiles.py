@@ -53,7 +53,6 @@ def activate(name: ProfileName, version: VersionPath, store: StoreDep, token: Ad
              ) -> VersionSummary:
     """Make a version the active one (alias `champion`) of its name, atomically (rolling back
     = an older one)."""
-    previous = store.active_version(name)
-    audit = AuditEntry("activate", f"{name}@champion", token,
-                       {"version": version, "previous": previous})
+    # the store adds `previous`, read in the write's own transaction
+    audit = AuditEntry("activate", f"{name}@champion", token, {"version": version})
     return _summary(store.activate(name, version, audit))

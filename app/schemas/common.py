@@ -8,10 +8,19 @@ and a JSON float is never read as an integer (`1.0`)."""
 from __future__ import annotations
 
 import math
+import re
 from datetime import datetime
 from typing import Annotated, Any, NamedTuple
 
-from pydantic import AfterValidator, BaseModel, Field, Strict, TypeAdapter, ValidationError
+from pydantic import (
+    AfterValidator,
+    BaseModel,
+    BeforeValidator,
+    Field,
+    Strict,
+    TypeAdapter,
+    ValidationError,
+)
 
 Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 Probability = Annotated[float, Strict(), Field(ge=0.0, le=1.0, allow_inf_nan=False)]
@@ -22,7 +31,23 @@ ProfileName = Annotated[str, Field(min_length=1, max_length=64, pattern=PROFILE_
                                    examples=["lidar"])]
 #: The largest version number a store can hold (a 32-bit integer column on every backend).
 MAX_VERSION = 2**31 - 1
-Version = Annotated[int, Field(ge=1, le=MAX_VERSION, description="Version number (1, 2, ...).")]
+#: A version as text (a path segment, a query value, the part after `@`): plain decimal digits,
+#: no sign, space, leading zero or fraction (`1.0`, ` 1`, `+1`, `01` are refused).
+VERSION_TEXT_PATTERN = r"^[1-9][0-9]{0,9}$"
+
+
+def _plain_version(value: Any) -> Any:
+    """Refuse a version given as text unless it is plain digits (a JSON number passes on to
+    the strict integer check)."""
+    if isinstance(value, str | bytes):
+        text = value.decode("latin-1") if isinstance(value, bytes) else value
+        if not re.fullmatch(VERSION_TEXT_PATTERN, text):
+            raise ValueError("a version is a plain positive integer (1, 2, ...)")
+    return value
+
+
+Version = Annotated[int, BeforeValidator(_plain_version),
+                    Field(ge=1, le=MAX_VERSION, description="Version number (1, 2, ...).")]
 
 #: An alias: like a name but starting with a letter or `_` (so `name@2` is always a version).
 ALIAS_PATTERN = r"^[A-Za-z_][A-Za-z0-9_.\-]*$"

@@ -42,15 +42,18 @@ class AliasStore(StorePart):
     def set_alias(self, name: str, alias: str, version: int,
                   audit: AuditEntry | None = None) -> AliasRecord:
         """Point `alias` of `name` at `version` (created or moved; `champion` activates it);
-        NotFoundError if the version does not exist."""
+        NotFoundError if the version does not exist. `audit` is recorded in the same
+        transaction, its `detail.previous` the version the alias pointed at before (None)."""
         if alias == CHAMPION:
             record = self.activate(name, version, audit)
             return AliasRecord(name, alias, record.version, utcnow())
         with self._tx() as s:
             self._serialize(s, "profile", name)
             row = version_row(s, name, version)
+            current = s.get(AliasRow, (name, alias))
+            previous = None if current is None else current.version
             record = self._point_alias(s, name, alias, row.id, version)
-            self._audit(s, audit)
+            self._audit_previous(s, audit, previous)
         return record
 
     @staticmethod
@@ -77,7 +80,7 @@ class AliasStore(StorePart):
                 raise NotFoundError(f"profile {name!r} has no alias {alias!r}")
             record = AliasRecord(name, alias, row.version, aware(row.updated_at) or utcnow())
             s.delete(row)
-            self._audit(s, audit)
+            self._audit_previous(s, audit, row.version)
         return record
 
     def aliases(self, name: str) -> list[AliasRecord]:

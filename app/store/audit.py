@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterator
 from contextlib import AbstractContextManager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from datetime import datetime
 from typing import Any
 
@@ -61,6 +61,15 @@ class AuditLog:
         s.add(AuditRow(at=utcnow(), action=entry.action, target=entry.target[:200],
                        token_id=entry.token_id[:64],
                        detail=json.dumps(entry.detail, sort_keys=True, default=str)))
+
+    @staticmethod
+    def _audit_previous(s: Session, entry: AuditEntry | None, previous: int | None) -> None:
+        """Add `entry` with `detail.previous` set to `previous`: the version the pointer held
+        as read inside the write's own transaction (under the name's lock), so concurrent
+        writers never record a stale one."""
+        if entry is not None:
+            entry = replace(entry, detail={**entry.detail, "previous": previous})
+        AuditLog._audit(s, entry)
 
     def append_audit(self, entry: AuditEntry) -> None:
         """Record a write done outside the store's other methods."""

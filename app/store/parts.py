@@ -36,3 +36,7 @@ class StorePart:
 
     def _audit(self, s: Session, entry: AuditEntry | None) -> None:
         raise NotImplementedError
+
+    def _audit_previous(self, s: Session, entry: AuditEntry | None,
+                        previous: int | None) -> None:
+        raise NotImplementedError

@@ -242,16 +242,18 @@ class Store(AuditLog, AliasStore, DumpFiles, JobQueue, HealthStore):
     def activate(self, name: str, version: int, audit: AuditEntry | None = None
                  ) -> ProfileRecord:
         """Make `version` the active one of `name`, atomically (rolling back = older version),
-        recording `audit` in the same transaction."""
+        recording `audit` in the same transaction with `detail.previous` (the version that
+        was active, read under the name's lock)."""
         with self._tx() as s:
             self._serialize(s, "profile", name)
             row = version_row(s, name, version)
             active = s.get(ActiveRow, name)
+            previous = None if active is None else active.version
             if active is None:
                 s.add(ActiveRow(name=name, profile_id=row.id, version=version))
             else:
                 _move(active, row)
-            self._audit(s, audit)
+            self._audit_previous(s, audit, previous)
         return _profile(row, version)
 
     def count_profiles(self) -> int:

@@ -101,7 +101,7 @@ def wait_job(client, job_id: str, timeout_s: float = 60.0) -> dict:
 
     deadline = time.monotonic() + timeout_s
     while True:
-        body = client.get(f"/v1/jobs/{job_id}").json()
+        body = client.get(f"/v1/jobs/{job_id}", headers=ADMIN).json()
         if body["state"] in ("succeeded", "failed") or time.monotonic() > deadline:
             return body
         time.sleep(0.05)

@@ -124,8 +124,10 @@ CASES = [
     ("fit-bad-dims", "POST", "/v1/fit", "dims", ADMIN, 422, "dims"),
     ("fit-bad-threshold", "POST", "/v1/fit", "threshold", ADMIN, 422, "threshold"),
     ("fit-oversized", "POST", "/v1/fit", "huge", ADMIN, 413, "exceeds"),
-    ("job-unknown", "GET", "/v1/jobs/" + "0" * 32, None, {}, 404, "does not exist"),
-    ("job-malformed-id", "GET", "/v1/jobs/xyz", None, {}, 422, "job_id"),
+    ("job-unknown", "GET", "/v1/jobs/" + "0" * 32, None, ADMIN, 404, "does not exist"),
+    ("job-malformed-id", "GET", "/v1/jobs/xyz", None, ADMIN, 422, "job_id"),
+    ("job-no-token", "GET", "/v1/jobs/" + "0" * 32, None, {}, 401, "token"),
+    ("jobs-wrong-token", "GET", "/v1/jobs", None, {"Authorization": "Bearer x"}, 403, "token"),
     ("profile-unknown", "GET", "/v1/profiles/radar9", None, {}, 404, "radar9"),
     ("profile-version-not-int", "GET", "/v1/profiles/lidar/abc", None, {}, 422, "version"),
 ]

@@ -70,7 +70,7 @@ def test_nuscenes_pair_upload(empty_client, dump_given, tmp_path: Path, wait):
 def test_jobs_listing(client, npz_bytes, wait):
     r = client.post("/v1/fit", headers=ADMIN, files={"dump": ("v.npz", npz_bytes)})
     wait(client, r.json()["job_id"])
-    jobs = client.get("/v1/jobs").json()
+    jobs = client.get("/v1/jobs", headers=ADMIN).json()
     assert jobs[0]["id"] == r.json()["job_id"]
 
 
@@ -102,7 +102,7 @@ def test_modulation_needs_layer_logits_at_upload(empty_client, dump_given, tmp_p
                                  "gt": ("g.json", gt.read_bytes())})
     assert r.status_code == 422
     assert r.json()["detail"][0]["loc"] == ["body", "modulation"]
-    assert empty_client.get("/v1/jobs").json() == []
+    assert empty_client.get("/v1/jobs", headers=ADMIN).json() == []
 
 
 def test_the_openapi_example_of_fit_is_accepted(client, wait):

@@ -63,7 +63,7 @@ def test_options_a_streamed_fit_cannot_reproduce_are_refused_before_queueing(cli
     r = _fit(client, dataset="val")                      # default: auto with a calibration part
     assert r.status_code == 422, r.text
     assert r.json()["detail"][0]["loc"][0] == "body"
-    assert client.get("/v1/jobs").json() == []
+    assert client.get("/v1/jobs", headers=ADMIN).json() == []
 
 
 def test_one_source_per_fit_and_none_without_the_setting(tmp_path, npz_bytes):

@@ -133,7 +133,7 @@ def test_an_empty_form_field_is_refused_not_defaulted(client, npz_bytes):
                         data={field: ""})
         assert _locs(r) == [["body", field]]
         assert "empty" in r.json()["detail"][0]["msg"]
-    assert client.get("/v1/jobs").json() == []
+    assert client.get("/v1/jobs", headers=ADMIN).json() == []
 
 
 def test_a_path_like_name_in_a_path_is_refused(client):

@@ -31,7 +31,7 @@ def assert_refused(client, r, field: str, *fragments: str) -> None:
     assert item["loc"] == ["body", field], item
     for fragment in fragments:
         assert fragment in item["msg"], item["msg"]
-    assert client.get("/v1/jobs").json() == []  # refused before a job was queued
+    assert client.get("/v1/jobs", headers=ADMIN).json() == []  # refused before a job was queued
 
 
 def test_declared_shape_of_10_to_the_12_is_a_422_not_a_memory_error(empty_client, settings):

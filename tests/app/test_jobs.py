@@ -166,5 +166,5 @@ def test_a_rollback_before_the_fit_lands_is_kept(tmp_path: Path, npz_bytes: byte
             "not activated: lidar@1 was activated after this job was submitted (it saw "
             "lidar@2); lidar@3 landed inactive, activate it to serve it")
         assert client.get("/v1/profiles/lidar").json()["active_version"] == 1
-        listed = client.get("/v1/jobs").json()
+        listed = client.get("/v1/jobs", headers=ADMIN).json()
         assert listed[0]["activation"] == job["activation"]

@@ -135,7 +135,7 @@ def wait_job(http: httpx.Client, job_id: str, timeout_s: float = 120.0) -> dict:
     deadline = time.monotonic() + timeout_s
     seen = []
     while time.monotonic() < deadline:
-        body = http.get(f"/v1/jobs/{job_id}").json()
+        body = http.get(f"/v1/jobs/{job_id}", headers=ADMIN).json()
         seen.append(body["state"])
         if body["state"] in ("succeeded", "failed"):
             body["_states_seen"] = seen

@@ -83,7 +83,7 @@ def _restart(server: Server, http: httpx.Client, job_id: str, attempts: int) -> 
     server.start()
     deadline = time.monotonic() + 1.0
     while True:
-        job = http.get(f"/v1/jobs/{job_id}").json()
+        job = http.get(f"/v1/jobs/{job_id}", headers=ADMIN).json()
         if job["state"] != "running" or job["attempts"] > attempts:
             return job
         assert time.monotonic() < deadline, f"job still held by the killed process: {job}"
@@ -148,7 +148,7 @@ def test_kills_during_fits_lose_nothing(own_server, dump_npz, large_dump_npz):
         # 2. Killed while the fit runs.
         job = _fit(http, large_dump_npz)
         deadline = time.monotonic() + 30
-        while (body := http.get(f"/v1/jobs/{job}").json())["stage"] in (
+        while (body := http.get(f"/v1/jobs/{job}", headers=ADMIN).json())["stage"] in (
                 None, "starting", "loading dump"):
             assert body["state"] == "queued" or body["state"] == "running", body
             assert time.monotonic() < deadline, body
@@ -193,10 +193,10 @@ def test_rollback_while_a_fit_runs_is_kept(own_server, dump_npz, large_dump_npz)
     with httpx.Client(base_url=own_server.url, timeout=30.0) as http:
         assert wait_job(http, _fit(http, dump_npz))["state"] == "succeeded"
         job = _fit(http, large_dump_npz)
-        while http.get(f"/v1/jobs/{job}").json()["state"] == "queued":
+        while http.get(f"/v1/jobs/{job}", headers=ADMIN).json()["state"] == "queued":
             time.sleep(0.01)
         assert http.post("/v1/profiles/lidar/1/activate", headers=ADMIN).status_code == 200
-        assert http.get(f"/v1/jobs/{job}").json()["state"] == "running", (
+        assert http.get(f"/v1/jobs/{job}", headers=ADMIN).json()["state"] == "running", (
             "the fit ended before the rollback: the test's dump is too small for this machine")
         done = wait_job(http, job)
         assert done["state"] == "succeeded" and done["profile"]["id"] == "lidar@2"

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from calibrators.scores import predict
+from tests.e2e.conftest import ADMIN
 
 pytestmark = pytest.mark.e2e
 
@@ -142,6 +143,6 @@ def test_restart_keeps_profiles_and_jobs(http, server, fitted):
     server.restart()
     after = http.get("/v1/profiles/lidar").json()
     assert after == before
-    assert http.get(f"/v1/jobs/{fitted['id']}").json()["state"] == "succeeded"
+    assert http.get(f"/v1/jobs/{fitted['id']}", headers=ADMIN).json()["state"] == "succeeded"
     assert http.get("/readyz").status_code == 200
     assert server.starts == 2
