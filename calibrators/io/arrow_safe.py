@@ -46,10 +46,13 @@ def read_safe_stream(data: bytes, max_rows: int | None = None,
         if first.type != "schema":
             raise ValueError(f"the stream starts with a {first.type} message, not a schema")
         schema = pa.ipc.read_schema(first)
+        names = [field.name for field in schema]   # UnicodeDecodeError: not UTF-8
     except FieldError:
         raise
     except (StopIteration, ValueError, pa.ArrowException, OSError) as exc:
         raise FieldError("body", f"not an Arrow IPC stream: {_text(exc)}") from None
+    if len(set(names)) != len(names):
+        raise FieldError("body", f"repeated column names: {names}")
     check_schema(schema)
     batches, rows, inflated, count = [], 0, 0, 0
     while True:
@@ -75,9 +78,13 @@ def read_safe_stream(data: bytes, max_rows: int | None = None,
             raise FieldError("rows", f"the batch has {rows} rows (detections); at most "
                                      f"{max_rows} are calibrated per request")
         if inflated > max_bytes:
-            raise FieldError("bytes", f"the stream takes more than {inflated} bytes once "
-                                      f"decoded; at most {max_bytes} are read per request")
+            raise FieldError("bytes", f"the stream's batches take {inflated} bytes (or more) "
+                                      f"once decoded; at most {max_bytes} are read per "
+                                      f"request")
         batch = _decoded(first, message, schema, count - 1)
+        for name in IDENTITY_COLUMNS:   # before the next batch inflates
+            if name in names:
+                _check_identity(name, batch.column(name), rows - batch.num_rows)
         if batch.num_rows:
             batches.append(batch)
     if not batches:
@@ -171,26 +178,26 @@ def _with_identity_copied(batches: list[pa.RecordBatch], schema: pa.Schema) -> p
         batch = table.to_batches()[0]
     arrays = list(batch.columns)
     for i, name in enumerate(batch.schema.names):
-        if name in IDENTITY_COLUMNS:
-            arrays[i] = _copied_identity(name, arrays[i])
+        if name in IDENTITY_COLUMNS:   # a copy of the values, not the client's buffers
+            arrays[i] = pc.take(arrays[i], pa.array(np.arange(len(arrays[i]), dtype=np.int64)))
     return pa.RecordBatch.from_arrays(arrays, schema=batch.schema)
 
 
-def _copied_identity(name: str, arr: pa.Array) -> pa.Array:
-    """A copy of identity column `arr`, FieldError(name, row) for a string over
-    MAX_ID_BYTES (the row is given for a column of plain strings)."""
+def _check_identity(name: str, arr: pa.Array, first_row: int) -> None:
+    """FieldError(name, row) for a string of identity column `arr` (a validated batch whose
+    first row is request row `first_row`) over MAX_ID_BYTES; the row is given for a column
+    of plain strings."""
     for flat in _strings(arr):
         if not len(flat):
             continue
         lengths = pc.binary_length(flat)
         longest = pc.max(lengths).as_py()
         if longest is not None and longest > MAX_ID_BYTES:
-            row = int(pc.index(pc.greater(lengths, MAX_ID_BYTES), True).as_py())
+            row = int(pc.index(pc.greater(lengths, MAX_ID_BYTES), True).as_py()) + first_row
             row = row if flat is arr else None
             raise FieldError(name, f"{name} strings hold at most {MAX_ID_BYTES} bytes; got "
                                    f"{longest}{'' if row is None else f' at row {row}'}",
                              row=row)
-    return pc.take(arr, pa.array(np.arange(len(arr), dtype=np.int64)))
 
 
 def _strings(arr: pa.Array) -> list[pa.Array]:
