@@ -1,6 +1,7 @@
 """Reading and writing validation dumps (docs/formats.md).
 
-- `load_dump` / `save_dump`: validation dump v1, a columnar NPZ.
+- `load_dump(path, format=...)`: any dump format (npz, parquet, nuscenes, kitti, openpcdet,
+  mmdet3d, av2; `calibrators.io.formats`); `save_dump`: validation dump v1, a columnar NPZ.
 - `load_nuscenes` / `save_nuscenes`: a nuScenes results JSON plus (optionally) a ground-truth
   JSON in `DetectionBox` form; `calibrate_results_document` writes calibrated scores and
   covariances into an existing results document, keeping all its other fields.
@@ -10,8 +11,9 @@
 """
 
 from calibrators.io.atomic import atomic_write
+from calibrators.io.formats import FORMATS, load_dump
 from calibrators.io.hashing import file_sha256
-from calibrators.io.npz import load_dump, save_dump
+from calibrators.io.npz import save_dump
 from calibrators.io.nuscenes import load_nuscenes
 from calibrators.io.nuscenes_write import (
     calibrate_results_document,
@@ -22,6 +24,7 @@ from calibrators.io.nuscenes_write import (
 from calibrators.io.parquet import ParquetDataset, load_parquet, open_parquet
 from calibrators.io.parquet_write import ParquetWriter, save_parquet
 
-__all__ = ["ParquetDataset", "ParquetWriter", "atomic_write", "calibrate_results_document",
-           "ellipses_json", "file_sha256", "load_dump", "load_nuscenes", "load_parquet",
+__all__ = ["FORMATS", "ParquetDataset", "ParquetWriter", "atomic_write",
+           "calibrate_results_document", "ellipses_json", "file_sha256", "load_dump",
+           "load_nuscenes", "load_parquet",
            "open_parquet", "save_dump", "save_nuscenes", "save_parquet", "unbounded_none"]
