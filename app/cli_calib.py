@@ -10,12 +10,9 @@ import argparse
 import hashlib
 import json
 import sys
-import tempfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
-
-import numpy as np
 
 from app.cli import CliError
 from calibrators.options import FitOptions
@@ -191,19 +188,26 @@ def run_evaluate(args: argparse.Namespace) -> int:
 
 def run_calibrate(args: argparse.Namespace) -> int:
     """`detcal calibrate`: write a calibrated nuScenes results JSON with ellipses per level."""
-    from calibrators.io import calibrate_results_document, ellipses_json
+    from calibrators.io.nuscenes_batch import calibrated_document
 
     levels = _levels(args.levels)
     profile = load_profile(args.profile)
-    path = _existing(args.file)
-    if path.suffix.lower() == ".json":
-        doc, out = _calibrate_results_json(path, profile, args.nuscenes_gt, levels)
+    path = Path(args.file)
+    if path.is_dir():
+        batches, meta = _dump_batches(path, profile), None
+    elif _existing(args.file).suffix.lower() == ".json":
+        batches, meta = _results_batches(path, profile, args.nuscenes_gt)
     else:
-        doc, out = _calibrate_dump(path, profile, levels)
-    calibrated = calibrate_results_document(doc, out.scores, out.covariances,
-                                            cov_dims=tuple(profile.cov_dims),
-                                            ellipses=ellipses_json(out))
-    _write_text(args.out, json.dumps(calibrated, allow_nan=False))
+        batches, meta = _dump_batches(path, profile), None
+    served = [_served(batch.calibrate, profile=profile, levels=levels) for batch in batches]
+    doc = calibrated_document(served, {"profile": str(args.profile), "levels": levels,
+                                       "ellipse_confidence": 0.95}, meta)
+    _write_text(args.out, json.dumps(doc, allow_nan=False))
+    n = sum(map(len, served))
+    print(f"detcal calibrate: {n} detections in {len(doc['results'])} frames calibrated with "
+          f"{args.profile} ({profile.score_method}, {profile.cov_method}, "
+          f"{profile.region_method}) -> {'stdout' if args.out == '-' else args.out}",
+          file=sys.stderr)
     return 0
 
 
@@ -230,51 +234,54 @@ def _served(calibrate: Callable[..., Any], **arrays: Any) -> Any:
     except FieldError as exc:
         if exc.field == "levels":
             raise CliError(f"--levels: {exc}") from None
-        raise
+        raise CliError(f"{exc.field}: {exc}") from None
 
 
-def _calibrate_dump(path: Path, profile: Any, levels: list[float] | None) -> tuple[dict, Any]:
-    """The dump's results document (raw scores, as `save_nuscenes` writes it) and the
-    calibrated detections of its final layer, in the document's box order."""
-    from calibrators import apply_profile
-    from calibrators.io import save_nuscenes
+def _dump_batches(path: Path, profile: Any) -> list[Any]:
+    """The detections of an NPZ dump or a Parquet dataset folder, each with its identity
+    (frame token, dump row)."""
+    from calibrators import check_profile_fits
+    from calibrators.detections import Detections
+    from calibrators.io import load_parquet
 
-    dump, _ = load_input(str(path), None)
-    out = _served(apply_profile, dump=dump, profile=profile, levels=levels)
-    with tempfile.TemporaryDirectory() as tmp:
-        results = Path(tmp) / "results.json"
-        save_nuscenes(dump, results)
-        return json.loads(results.read_bytes()), out
-
-
-def _calibrate_results_json(path: Path, profile: Any, gt_path: str | None,
-                            levels: list[float] | None) -> tuple[dict, Any]:
-    """The results document as read and its boxes calibrated, in the document's box order.
-
-    Boxes without `detection_logits` are calibrated from their score, `sigmoid(logit(p) / T)`
-    (or the profile's per-class calibrator). Without `--nuscenes-gt`, distances are measured
-    from the boxes' `ego_translation` if they have one, else from the origin (ego-frame
-    results).
-    """
-    from calibrators import apply_profile
-    from calibrators.io import load_nuscenes
-
+    if path.is_dir():
+        try:
+            dump = load_parquet(str(path))
+        except ValueError as exc:
+            raise CliError(f"{path}: {exc}") from None
+    else:
+        dump, _ = load_input(str(path), None)
     try:
-        doc = json.loads(path.read_bytes())
-        results = doc["results"]
-        boxes = [box for token in results for box in results[token]]
-    except (ValueError, KeyError, TypeError):
-        raise CliError(f"{path} is not a nuScenes results JSON (an object with 'results')"
-                       ) from None
+        check_profile_fits(dump, profile)
+    except ValueError as exc:
+        raise CliError(f"{path}: {exc}") from None
+    return [Detections.from_dump(dump, profile.cov_source)]
+
+
+def _results_batches(path: Path, profile: Any, gt_path: str | None
+                     ) -> tuple[list[Any], dict | None]:
+    """The boxes of a results document (checked by `load_nuscenes`), one batch per evidence
+    form, and its meta.
+
+    Boxes without `detection_logits` are calibrated from their score and `detection_name`
+    (`sigmoid(logit(p) / T)`, or the profile's per-class calibrator). With `--nuscenes-gt`
+    the frames' ego positions come from both files; without it, distances are measured from
+    each box's `ego_translation` if it has one, else from the origin (ego-frame results).
+    """
+    from calibrators.io import load_nuscenes
+    from calibrators.io.nuscenes_batch import detections_from_nuscenes
+
     gt = None if gt_path is None else str(_existing(gt_path))
-    dump = load_nuscenes(str(path), gt, classes=profile.classes)
-    if any("detection_logits" in box for box in boxes):
-        return doc, _served(apply_profile, dump=dump, profile=profile, levels=levels)
-    return doc, _served(
-        profile.calibrate, scores=np.array([float(b["detection_score"]) for b in boxes]),
-        labels=dump.det_labels, boxes=dump.final_boxes,
-        covariances=dump.det_cov if profile.cov_source == "given" else None,
-        ego_xy=dump.ego_xy(dump.det_frame), levels=levels)
+    try:
+        dump = load_nuscenes(str(path), gt, classes=profile.classes)
+        doc = json.loads(path.read_bytes())
+        ego = None if gt is None or dump.ego_translation is None else {
+            str(t): e for t, e in zip(dump.frame_ids.tolist(), dump.ego_translation.tolist(),
+                                      strict=True)}
+        batches = detections_from_nuscenes(doc, profile.classes, profile.score_mode, ego)
+    except ValueError as exc:
+        raise CliError(f"{path}: {exc}") from None
+    return batches, doc.get("meta") if isinstance(doc.get("meta"), dict) else None
 
 
 # -- helpers ---------------------------------------------------------------------------------

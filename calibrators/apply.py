@@ -1,17 +1,16 @@
 """Apply a profile to a whole dump: `apply_profile(dump, profile) -> CalibratedDetections`.
 
-The one place that knows which of a dump's arrays a profile needs: every decoder layer's
-logits (modulation uses them; the final layer is the last), the final boxes, the raw Σ of
-the profile's covariance source (`given`: the dump's det_cov; `layers`: its per-layer
-boxes; `hypotheses`: its det_hyp_boxes and det_hyp_scores) and each detection's ego position.
+The dump's detections go through the one calibrate batch, `Detections.from_dump`: every
+decoder layer's logits (modulation uses them; the final layer is the last), the final boxes,
+the raw Σ of the profile's covariance source (`source_arrays`) and each detection's ego
+position; the result keeps each detection's identity (frame token and dump row).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
 
-import numpy as np
-
+from calibrators.detections import Detections, source_arrays
 from calibrators.dump import Dump
 from calibrators.matched import resolve_cov_source
 from calibrators.profile import CalibratedDetections, CalibrationProfile
@@ -35,21 +34,5 @@ def apply_profile(dump: Dump, profile: CalibrationProfile, *,
     dump's detection order), with regions at `levels`; see `calibrators.serving` for the
     result's fields."""
     check_profile_fits(dump, profile)
-    return profile.calibrate(
-        layer_logits=dump.det_logits, labels=dump.det_label, boxes=dump.final_boxes,
-        **source_arrays(dump, profile.cov_source),
-        ego_xy=dump.ego_xy(dump.det_frame), ellipse_confidence=ellipse_confidence,
-        levels=levels)
-
-
-def source_arrays(dump: Dump, source: str) -> dict[str, np.ndarray | None]:
-    """The keyword arguments of `CalibrationProfile.calibrate` that carry covariance `source`
-    from `dump`: `covariances [N, D, D]` (given), `layer_boxes [N, L, 9]` (layers),
-    `hyp_boxes [N, H, 9]` and `hyp_scores [N, H]` (hypotheses), nothing (none)."""
-    if source == "given":
-        return {"covariances": dump.det_cov}
-    if source == "layers":
-        return {"layer_boxes": dump.det_boxes}
-    if source == "hypotheses":
-        return {"hyp_boxes": dump.det_hyp_boxes, "hyp_scores": dump.det_hyp_scores}
-    return {}
+    return Detections.from_dump(dump, profile.cov_source).calibrate(
+        profile, ellipse_confidence=ellipse_confidence, levels=levels)

@@ -66,6 +66,15 @@ def probability_logit(p: np.ndarray) -> np.ndarray:
     return np.log(q) - np.log1p(-q)
 
 
+def probabilities_logits(p: np.ndarray, mode: str) -> np.ndarray:
+    """Logits of probabilities `p [..., C']` in score `mode` (at T = 1, clipped as
+    `probability_logit`): `logit(p)` (sigmoid), `log(p)` (softmax: defined up to a constant
+    per row, which the softmax ignores)."""
+    if mode == "sigmoid":
+        return probability_logit(p)
+    return np.log(np.clip(np.asarray(p, dtype=np.float64), _EPS, 1.0 - _EPS))
+
+
 def label_logit(logits: np.ndarray, labels: np.ndarray, mode: str) -> np.ndarray:
     """`[N]` logit of the label's probability from final-layer logits `[N, C']` (or the label's
     column alone, `[N, 1]`): the label's logit in sigmoid mode, `logit(p_label)` of the

@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from scipy.special import expit, logit
+from scipy.special import expit
 
 from calibrators.checks import (
     as_float_array,
@@ -55,6 +55,7 @@ from calibrators.scores import (
 
 if TYPE_CHECKING:
     from calibrators.conformal import ConformalGroup, ConformalRegions
+    from calibrators.detections import Detections
     from calibrators.profile import CalibrationProfile
     from calibrators.profile_fields import SourceStage
 
@@ -74,7 +75,9 @@ class CalibratedDetections:
     region_groups: [N] the conformal group serving each detection, e.g. `car 15-30 m`
     (None for gaussian); region_radii: level -> Mahalanobis radius [N] of each region;
     cov_source: the covariance source that served the call (`given`, `layers`, `hypotheses`,
-    `none`).
+    `none`). classes, cov_dims: the profile's; ellipse_confidence: the level of `ellipses`;
+    detections: the `Detections` batch calibrated (identity: frame ids, rows, user ids), when
+    it went through `Detections.calibrate`.
     """
 
     labels: np.ndarray
@@ -89,9 +92,35 @@ class CalibratedDetections:
     region_groups: list[str] | None = None
     region_radii: dict[float, np.ndarray] = field(default_factory=dict)
     cov_source: str | None = None
+    classes: tuple[str, ...] = ()
+    cov_dims: tuple[str, ...] = ()
+    ellipse_confidence: float = 0.95
+    detections: Detections | None = None
 
     def __len__(self) -> int:
         return len(self.labels)
+
+    def to_records(self) -> list[dict[str, Any]]:
+        """One JSON-ready dict per detection, in this order, with its identity
+        (`calibrators.io.records.calibrated_records`)."""
+        from calibrators.io.records import calibrated_records
+
+        return calibrated_records(self)
+
+    def to_arrow(self, metadata: dict[str, Any] | None = None) -> Any:
+        """An Arrow record batch, a row per detection with its identity
+        (`calibrators.io.arrow_batch.calibrated_batch`; needs pyarrow)."""
+        from calibrators.io.arrow_batch import calibrated_batch
+
+        return calibrated_batch(self, {} if metadata is None else metadata)
+
+    def to_nuscenes(self, calibration: dict[str, Any] | None = None,
+                    meta: dict[str, Any] | None = None) -> dict[str, Any]:
+        """A nuScenes results document of these detections, grouped by frame token, each box
+        with its identity (`calibrators.io.nuscenes_write.calibrated_document`)."""
+        from calibrators.io.nuscenes_write import calibrated_document
+
+        return calibrated_document(self, calibration, meta)
 
 
 def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | None = None,
@@ -133,7 +162,9 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
                                 region_method=method, region_groups=groups,
                                 region_radii={} if wanted is None or not radii
                                 else {float(q): radii[float(q)] for q in wanted},
-                                cov_source=stage.source)
+                                cov_source=stage.source, classes=tuple(profile.classes),
+                                cov_dims=tuple(profile.cov_dims),
+                                ellipse_confidence=float(confidence))
     _check_finite(out, covariances is not None, radii.get(float(confidence)))
     return out
 
@@ -227,12 +258,10 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
     lab = as_int_array("labels", _required("labels (with scores)", labels))
     check_length("labels", lab, len(p), "scores")
     check_index("labels", lab, n_classes, "classes")
-    if calibrator is None:
-        with np.errstate(divide="ignore"):
-            calibrated = expit(logit(p) / profile.temperature)
-        return lab, calibrated, p, None
-    check_length("scores", p, len(distances), "boxes")
     z_label = probability_logit(p)
+    if calibrator is None:
+        return lab, expit(z_label / profile.temperature), p, None
+    check_length("scores", p, len(distances), "boxes")
     return lab, calibrator.transform(z_label, lab, distances=distances), p, None
 
 

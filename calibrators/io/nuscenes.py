@@ -26,6 +26,7 @@ from calibrators.checks import (
     check_probabilities,
 )
 from calibrators.dump import Dump
+from calibrators.scores import probability_logit
 from calibrators.vocab import SCORE_MODES, quaternion_yaw
 
 if TYPE_CHECKING:
@@ -35,7 +36,6 @@ NUSCENES_CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "p
                     "motorcycle", "bicycle", "traffic_cone", "barrier")
 EGO_TOLERANCE = 0.01  # metres: boxes of one frame must agree on the ego position to this
 OTHER_CLASS_PROB = 1e-6  # probability given to the other classes when only a score is known
-_SCORE_CLIP = 1e-12
 _SHORT = reprlib.Repr()  # values in messages: 2 levels, 4 items, 40 characters
 _SHORT.maxlevel, _SHORT.maxlist, _SHORT.maxdict, _SHORT.maxstring = 2, 4, 4, 40
 #: Largest results / ground-truth file `load_nuscenes` parses (bytes); `max_bytes=` changes it.
@@ -299,7 +299,7 @@ def _logits(det: dict, classes: tuple[str, ...], meta: dict
             raise ValueError("meta.score_mode is softmax but the boxes have no detection_logits")
         scores = det["score"].reshape(-1)
         check_probabilities("detection_score", scores)
-        z = logit(np.clip(scores, _SCORE_CLIP, 1 - _SCORE_CLIP))
+        z = probability_logit(scores)
         out = np.minimum(logit(OTHER_CLASS_PROB), z - 1.0)[:, None] * np.ones((n, c))
         out[np.arange(n), det["label"]] = z
         return out, "sigmoid", None

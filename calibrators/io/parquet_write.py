@@ -30,7 +30,8 @@ ROWS_PER_PART = 1_000_000
 def _fixed_list(values: np.ndarray, dtype: Any) -> pa.FixedSizeListArray:
     """`values [N, ...]` as a fixed-size list column of `prod(...)` values per row."""
     n = values.shape[0]
-    flat = np.ascontiguousarray(values, dtype=dtype).reshape(n, -1)
+    width = int(np.prod(values.shape[1:], dtype=np.int64))   # -1 fails on 0 rows
+    flat = np.ascontiguousarray(values, dtype=dtype).reshape(n, width)
     return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
 
 
