@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from app.cache import LoadedProfile
+from app.dashboard.intervals import RULE, proportion_interval, too_small
 from app.store import JobRecord, NameSummary
 from calibrators import ProfileReport, Summary
 from calibrators.summary_types import Pair
@@ -31,6 +32,7 @@ th:first-child,td:first-child{text-align:left}.ok{color:#1a7f37}.bad{color:#c628
 .note{color:#666;font-size:12px}.plots{display:flex;flex-wrap:wrap;gap:12px;align-items:flex-start}
 svg.plot{max-width:100%;height:auto}.better{color:#1a7f37}.worse{color:#c62828}
 code{background:#eef1f4;padding:1px 4px;border-radius:3px}
+td.small{color:#9aa3ad;background:#f3f4f6}.ci{color:#888;font-size:10px}
 """
 
 
@@ -63,12 +65,12 @@ def before_after_table(summary: Summary) -> str:
     rows.append(_pair_row("regression NLL", r.nll))
     rows.append(f"<tr><td>mean Mahalanobis distance (ideal {_num(r.expected_md)})</td>"
                 f"<td>{_num(r.mean_md.before)}</td><td>{_num(r.mean_md.after)}</td></tr>")
-    cov = r.coverage
+    cov, tps = r.coverage, summary.counts.tp
     for i, radius in enumerate(cov.radii):
         before = None if cov.before is None else cov.before[i]
         after = None if cov.after is None else cov.after[i]
         rows.append(f"<tr><td>coverage within {radius:g}σ (nominal {_num(cov.nominal[i], 3)})"
-                    f"</td><td>{_num(before, 3)}</td><td>{_num(after, 3)}</td></tr>")
+                    f"</td>{_share_cell(before, tps)}{_share_cell(after, tps)}</tr>")
     for axis, pair in r.miscalibration_area.items():
         rows.append(_pair_row(f"miscalibration area {axis}", pair))
     caption = ", ".join(f"{k} {v}" for k, v in summary.counts.to_dict().items())
@@ -82,13 +84,27 @@ def per_class_table(summary: Summary) -> str:
     rows = []
     for row in summary.per_class:
         fb = " (pooled)" if row.fallback else ""
+        small = " class='small'" if too_small(row.tp) else ""
         rows.append(f"<tr><td>{_e(row.name)}</td><td>{_num(row.n)}</td>"
                     f"<td>{_num(row.tp)}</td><td>{_num(row.k)}{fb}</td>"
-                    f"<td>{_num(row.ece_before)}</td><td>{_num(row.ece_after)}</td>"
-                    f"<td>{_num(row.nll_before)}</td><td>{_num(row.nll_after)}</td></tr>")
-    return ("<table><tr><th>class</th><th>detections</th><th>TP</th><th>k [m²/m]</th>"
-            "<th>ECE before</th><th>ECE after</th><th>reg. NLL before</th>"
+                    + "".join(f"<td{small}>{_num(v)}</td>" for v in (
+                        row.ece_before, row.ece_after, row.nll_before, row.nll_after))
+                    + "</tr>")
+    return (f"<p class='note'>{_e(RULE.split('. ')[0])}.</p>"
+            "<table class='per-class'><tr><th>class</th><th>detections</th><th>TP</th>"
+            "<th>k [m²/m]</th><th>ECE before</th><th>ECE after</th><th>reg. NLL before</th>"
             "<th>reg. NLL after</th></tr>" + "".join(rows) + "</table>")
+
+
+def _share_cell(value: float | None, n: int | None, mark: bool = False) -> str:
+    """A table cell with a share seen over `n` true positives and its sampling interval;
+    grey when `n` is too small to judge, red when `mark`."""
+    if value is None or not n:
+        return f"<td class='small'>{_num(value, 3)}</td>"
+    lo, hi = proportion_interval(value, n)
+    cls = "small" if too_small(n) else ("worse" if mark else "")
+    return (f"<td class='{cls}'>{_num(value, 3)} <span class='ci'>[{lo:.2f}, {hi:.2f}]"
+            "</span></td>")
 
 
 #: A served level whose coverage misses it by more than this is marked (the service's own
@@ -113,7 +129,7 @@ def region_table(summary: Summary, part: str) -> str:
         for q, v in zip(levels, values, strict=True):
             off = (v is not None and count >= COVERAGE_MIN_TPS
                    and abs(v - q) > COVERAGE_TOLERANCE)
-            out.append(f"<td class='{'worse' if off else ''}'>{_num(v, 3)}</td>")
+            out.append(_share_cell(v, count, off))
         return "".join(out)
 
     def span(rng: list) -> str:
@@ -131,8 +147,8 @@ def region_table(summary: Summary, part: str) -> str:
     return (f"<p class='note'>{_e(part)}: share of true centres inside the served "
             f"{_e(regions['method'])} ellipse at each level; mean area {area} m²; Gaussian χ² "
             f"radii on the same Σ' would cover {gauss}. Cells with ≥ {COVERAGE_MIN_TPS} TPs "
-            f"more than {COVERAGE_TOLERANCE:.0%} off their level are red.</p>"
-            f"<table><tr><th>class</th>"
+            f"more than {COVERAGE_TOLERANCE:.0%} off their level are red. {_e(RULE)}</p>"
+            f"<table class='coverage'><tr><th>class</th>"
             f"<th>range</th><th>TPs</th>{head}</tr>" + "".join(rows) + "</table>")
 
 
@@ -213,10 +229,13 @@ def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) 
          "ellipses": raw_el, "color": plots.BEFORE},
         {"title": f"after: {loaded.record.ref}", "boxes": boxes, "scores": cal_scores,
          "ellipses": cal_el, "color": plots.AFTER},
-    ], extent=60.0, title="Bird's-eye view")
-    return (f"<p class='note'>Simulated {_e(sensor)} frame, seed {seed}: points (grey), ground "
-            f"truth (green), {len(rows)} detections with raw score ≥ 0.3 and their 95% "
-            f"ellipses.</p>" + svg)
+    ], title="Bird's-eye view")
+    sizes = " and ".join(f"{name} {float(np.median(el[0])):.2f} m" for name, el in
+                         (("before", raw_el), ("after", cal_el)) if el is not None and len(el[0]))
+    return (f"<p class='note'>Simulated {_e(sensor)} frame, seed {seed}, zoomed to its objects: "
+            f"points (grey), ground truth (green), {len(rows)} detections with raw score ≥ 0.3, "
+            f"their scores and their 95% ellipses (filled; median semi-major axis {sizes})."
+            f"</p>" + svg)
 
 
 def render_page(*, version: str, status: dict[str, str], uptime_s: float,

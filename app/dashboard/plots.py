@@ -17,9 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.ellipse import Ellipse
 from detectors.panels import Curve, panel_grid, pyplot
-from detectors.panels.bev import BevStyle, bev_panel
 from detectors.panels.calibration_curve import calibration_curve_panel
 from detectors.panels.reliability import reliability_panel
 
@@ -27,14 +25,6 @@ BEFORE, AFTER = "#d62728", "#1f77b4"
 #: Matplotlib settings of every dashboard figure: text stays text in the SVG, small fonts,
 #: and element ids that do not change from one rendering to the next.
 RC = {"svg.fonttype": "none", "font.size": 8, "axes.titlesize": 9, "svg.hashsalt": "detcal"}
-#: The dashboard's bird's-eye view: small grey points, solid green ground truth, each
-#: panel's detections, scores and ellipses in the panel's colour.
-DASHBOARD_BEV = BevStyle(point_color="0.55", point_size=(0.3, 0.3), gt_color="#2ca02c",
-                         gt_width=0.8, gt_line="-", box_width=0.9, label_dy=1.5,
-                         label_colored=True, ellipse_width=0.7, ellipse_alpha=0.8, ego_size=5,
-                         units="[m]")
-
-
 _DRAWING = threading.Lock()
 
 
@@ -87,11 +77,16 @@ def reliability(plots: dict, title: str = "Reliability (all classes)") -> str:
 def reliability_per_class(plots: dict) -> str:
     """Small-multiple reliability diagrams, one per class."""
     per = plots.get("reliability_per_class") or {}
-    fig, axes = panel_grid(len(per), 5, 1.9, 2.0)
-    for ax, (name, pair) in zip(axes.flat, per.items(), strict=False):
+    fig, axes = panel_grid(len(per), 5, 2.0, 2.15)
+    for i, (ax, (name, pair)) in enumerate(zip(axes.flat, per.items(), strict=False)):
         reliability_panel(ax, _before_after(pair, "confidence", "accuracy", 1.2), name,
                           square=True)
         ax.tick_params(labelsize=6)
+        ax.set_xlabel("confidence", fontsize=7)
+        if i % axes.shape[1] == 0:
+            ax.set_ylabel("precision", fontsize=7)
+        if i == 0:
+            ax.legend(loc="upper left", frameon=False, fontsize=6)
     fig.tight_layout()
     return to_svg(fig, "Reliability per class")
 
@@ -136,21 +131,12 @@ def residual_plot(plots: dict) -> str:
 
 
 @_figure
-def bev(points: np.ndarray, gt_boxes: np.ndarray, panels: Sequence[dict], extent: float,
-        title: str) -> str:
-    """Bird's-eye view panels of one frame.
+def bev(points: np.ndarray, gt_boxes: np.ndarray, panels: Sequence[dict], title: str) -> str:
+    """Bird's-eye view panels of one frame, zoomed to its objects (see `app.dashboard.bev`).
 
     Each panel: `{"title", "boxes" [N, 9], "scores" [N], "ellipses": (major, minor, angle)
     arrays or None, "color"}`; points `[P, >=2]`, ground truth `[G, 9]`.
     """
-    fig, axes = pyplot().subplots(1, len(panels), figsize=(4.2 * len(panels), 4.4),
-                                  squeeze=False)
-    for ax, panel in zip(axes[0], panels, strict=True):
-        el = panel.get("ellipses")
-        bev_panel(ax, points, gt_boxes, panel["boxes"],
-                  [f"{score:.2f}" for score in panel["scores"]],
-                  None if el is None else Ellipse(*el), color=panel["color"],
-                  ellipse_color=panel["color"], half=extent, style=DASHBOARD_BEV)
-        ax.set_title(panel["title"])
-    fig.tight_layout()
-    return to_svg(fig, title)
+    from app.dashboard import bev as bev_figure
+
+    return to_svg(bev_figure.draw(points, gt_boxes, panels), title)

@@ -18,4 +18,4 @@ def test_the_dashboard_shows_health_as_a_time_series(client):
     page = client.get("/").text
     assert "health-series" in page and page.count("<polyline") >= 5
     assert "lidar@1</b>: <span class='ok'>ok</span>" in page
-    assert "coverage 0.9" in page
+    assert "coverage 90%" in page and "window ECE (right axis" in page

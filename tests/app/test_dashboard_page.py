@@ -19,9 +19,12 @@ def test_region_table_shows_every_cell_and_marks_only_judgeable_misses():
     assert "held-out part" in html and "conformal" in html
     for row in rows:                                    # a small cell is never marked red
         if row["count"] < COVERAGE_MIN_TPS:
-            cell = re.search(rf"<td>{row['count']}</td>((?:<td[^>]*>[^<]*</td>){{4}})</tr>",
+            cell = re.search(rf"<td>{row['count']}</td>((?:<td[^>]*>.*?</td>){{4}})</tr>",
                              html)
             assert cell is not None and "worse" not in cell.group(1)
+        if row["count"] < 30:                           # ... and one too small to judge is grey
+            assert cell is not None and cell.group(1).count("<td class='small'>") == 4
+    assert "Clopper-Pearson" in html and "<span class='ci'>[" in html
     assert "ECE" in before_after_table(report.fit)
 
 
