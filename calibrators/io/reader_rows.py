@@ -89,6 +89,14 @@ def check_file(path: str | os.PathLike[str], what: str) -> Path:
     return p
 
 
+def check_scores(scores: np.ndarray, where: str, key: str) -> None:
+    """Raise a FieldError on `key` naming `where` and the first score outside [0, 1]."""
+    bad = np.flatnonzero((scores < 0) | (scores > 1))
+    if len(bad):
+        raise FieldError(key, f"{where}: {key}[{bad[0]}] = {scores[bad[0]]:g} is not a "
+                              "probability in [0, 1]", row=int(bad[0]))
+
+
 def score_logits(scores: np.ndarray, labels: np.ndarray, n_classes: int,
                  score_is_logit: bool = False) -> np.ndarray:
     """`[N, C]` sigmoid-mode logits of detections that carry one score for their label.
