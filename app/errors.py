@@ -12,6 +12,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import compile_path
 from starlette.types import Scope
 
+from app.path_errors import explain
 from app.store import NotFoundError
 
 
@@ -50,8 +51,11 @@ def error_body(exc: ServiceError) -> tuple[int, dict[str, object]]:
 def install_handlers(app: FastAPI) -> None:
     """Answer every `ServiceError` with its `error_body`."""
 
-    async def _handle(_: Request, exc: Exception) -> JSONResponse:
+    async def _handle(request: Request, exc: Exception) -> JSONResponse:
         status, body = error_body(exc)  # type: ignore[arg-type]
+        if isinstance(exc, RequestValidationError):   # path parameters: name and form
+            body = {"detail": explain(body["detail"], list(exc.errors()),  # type: ignore
+                                      request.scope.get("route"))}
         return JSONResponse(body, status_code=status)
 
     for kind in (RequestValidationError, RequestError, NotFoundError):

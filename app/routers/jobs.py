@@ -37,7 +37,9 @@ def list_jobs(store: StoreDep, _: FeedbackIdDep,
 
 
 @router.get("/{job_id}", responses={404: {"model": ErrorResponse}, **TOKEN_ERRORS})
-def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$")], store: StoreDep,
+def get_job(job_id: Annotated[str, Path(pattern=r"^[0-9a-f]{32}$", description=(
+                "the job's id: 32 lowercase hex digits, as POST /v1/fit returned it"))],
+            store: StoreDep,
             _: FeedbackIdDep) -> JobOut:
     """State, progress and error of a fit job; its version and report when it succeeded."""
     return job_out(store, store.get_job(job_id))

@@ -28,7 +28,9 @@ Probability = Annotated[float, Strict(), Field(ge=0.0, le=1.0, allow_inf_nan=Fal
 #: A profile name: letters, digits, `_ . -`, not starting with `.` or `-` (no `.`, `..`).
 PROFILE_NAME_PATTERN = r"^[A-Za-z0-9_][A-Za-z0-9_.\-]*$"
 ProfileName = Annotated[str, Field(min_length=1, max_length=64, pattern=PROFILE_NAME_PATTERN,
-                                   examples=["lidar"])]
+                                   examples=["lidar"], description=(
+                                       "A profile name: 1-64 letters, digits, `_ . -`, not "
+                                       "starting with `.` or `-`."))]
 #: The largest version number a store can hold (a 32-bit integer column on every backend).
 MAX_VERSION = 2**31 - 1
 #: A version as text (a path segment, a query value, the part after `@`): plain decimal digits,
