@@ -24,11 +24,17 @@ Say = Callable[[str], None]
 
 
 def ensure_admin_token(settings: Settings, say: Say = print) -> Path | None:
-    """Generate `data_dir/admin_token` (0600) if no token is configured; its path, or None."""
+    """Generate `data_dir/admin_token` (0600) if no token is configured, and say where the
+    token is on every start; its path, or None when it comes from the environment."""
+    path = settings.data_dir / TOKEN_FILE
     if settings.admin_token is not None:
+        if path.is_file():
+            say(f"detcal: the admin token is in {path.resolve()}; use it as "
+                f"'Authorization: Bearer $(cat {path.resolve()})'")
+            return path
+        say("detcal: the admin token is the one set in DETCAL_ADMIN_TOKEN")
         return None
     settings.data_dir.mkdir(mode=0o700, parents=True, exist_ok=True)
-    path = settings.data_dir / TOKEN_FILE
     token = secrets.token_urlsafe(32)
     fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
     with os.fdopen(fd, "w") as f:

@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import os
 import shutil
+import sys
 from pathlib import Path
 
 
@@ -52,6 +53,11 @@ def serve(args: argparse.Namespace) -> int:
             os.environ[f"DETCAL_{env}"] = str(value)
     get_settings.cache_clear()
     settings = Settings()
+    from app.serve_port import bind_error
+
+    if (busy := bind_error(settings.host, settings.port)) is not None:
+        print(busy, file=sys.stderr)
+        return 1
     # Everything the server writes (store, WAL, dumps, token, and their directories) is
     # private to its user; the worker processes inherit the mask.
     os.umask(0o077)

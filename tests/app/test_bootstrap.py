@@ -39,3 +39,14 @@ def test_admin_token_file_is_private_and_only_made_without_a_configured_token(tm
     assert len(path.read_text().strip()) >= 32
     configured = Settings(data_dir=tmp_path / "other", admin_token="x" * 24)
     assert ensure_admin_token(configured, say=lambda _: None) is None
+
+
+def test_every_start_says_where_the_admin_token_is(tmp_path):
+    said: list[str] = []
+    first = ensure_admin_token(Settings(data_dir=tmp_path / "data"), say=said.append)
+    warm = ensure_admin_token(Settings(data_dir=tmp_path / "data"), say=said.append)
+    assert first == warm and warm is not None
+    assert len(said) == 2 and all(str(warm.resolve()) in line for line in said), said
+    said.clear()
+    ensure_admin_token(Settings(data_dir=tmp_path / "env", admin_token="x" * 24), said.append)
+    assert said == ["detcal: the admin token is the one set in DETCAL_ADMIN_TOKEN"]
