@@ -67,11 +67,12 @@ def patched(data: bytes, schema: pa.Schema, column: str, role: str, *, at: int =
     return bytes(out)
 
 
-def segfault(dump) -> bytes:
+def segfault(dump, rows: int = 60) -> bytes:
     """A `label` string column with an int32 offset patched to 0x7ffff000 (crashed the
-    server: reading it walks far past the body)."""
-    batch = request_batch(dump, 60, variant=1)
-    return patched(stream([batch]), batch.schema, "label", "offsets", at=4 * 30,
+    server: reading it walks far past the body); 3,000 rows make a ~500 KB body, the issue's
+    variant that ran in a worker thread."""
+    batch = request_batch(dump, rows, variant=1)
+    return patched(stream([batch]), batch.schema, "label", "offsets", at=4 * (rows // 2),
                    value=0x7FFFF000)
 
 
