@@ -17,8 +17,10 @@ the reader; `ground_truth=` names the ground truth where the format keeps it in 
 
 from __future__ import annotations
 
+import hashlib
 import os
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any, BinaryIO
 
 from calibrators.dump import Dump
@@ -38,6 +40,25 @@ def load_dump(path: str | os.PathLike[str] | BinaryIO, format: str | None = None
     if name not in FORMATS:
         raise FieldError("format", f"format must be one of {list(FORMATS)}, got {name!r}")
     return _reader(name)(path, **options)
+
+
+def inputs_sha256(*paths: str | os.PathLike[str] | None) -> str:
+    """One hex digest of a reader's input files, for a profile's provenance: a file's
+    `file_sha256`, a folder's every file below it (sorted by relative path, names included),
+    the parts joined by newlines (None parts skipped); one plain file gives its own hash."""
+    from calibrators.io.hashing import file_sha256
+
+    parts = []
+    for path in (p for p in paths if p is not None):
+        root = Path(path)
+        if root.is_dir():
+            files = sorted(p for p in root.rglob("*") if p.is_file())
+            parts += [f"{f.relative_to(root).as_posix()} {file_sha256(f)}" for f in files]
+        else:
+            parts.append(file_sha256(root))
+    if len(parts) == 1 and not Path(next(p for p in paths if p is not None)).is_dir():
+        return parts[0]
+    return hashlib.sha256("\n".join(parts).encode()).hexdigest()
 
 
 def _reader(name: str) -> Callable[..., Dump]:
