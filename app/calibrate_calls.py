@@ -2,7 +2,7 @@
 
 `CalibrateEngine.run(call)` parses the body (JSON strictly, as `app.body.parse_json`; an Arrow
 IPC stream with `calibrators.io.arrow_batch`), resolves the profile, calibrates
-(`app.calibration`, `app.nuscenes_results`, or the profile directly for a batch) and
+(`app.calibration` for JSON and nuScenes bodies, the library's `Detections` for a batch) and
 serialises the response in the body's format;
 an error becomes the same 4xx body the app's exception handlers write (`app.errors`). It
 needs nothing from the request but the `CalibrateCall`, so the same code runs in a thread of
@@ -21,9 +21,8 @@ from fastapi.exceptions import RequestValidationError
 
 from app.body import dumps_json, parse_json
 from app.cache import ProfileCache
-from app.calibration import calibrate_frames
+from app.calibration import calibrate_frames, calibrate_results
 from app.errors import RequestError, error_body
-from app.nuscenes_results import calibrate_results
 from app.schemas.calibrate import DEFAULT_LEVELS, CalibrateRequest
 from app.schemas.nuscenes import NuScenesResults
 from app.store import NotFoundError
@@ -32,7 +31,6 @@ from calibrators.io.arrow_batch import (
     ARROW_STREAM,
     LIBRARY_TO_COLUMN,
     batch_request,
-    calibrated_batch,
     read_stream,
     write_stream,
 )
@@ -142,15 +140,14 @@ class CalibrateEngine:
         except FieldError as exc:
             raise _batch_error(exc) from None
         try:
-            res = prof.calibrate(**request.calibrate, ellipse_confidence=_confidence(call),
-                                 levels=levels)
+            res = request.calibrate(prof, ellipse_confidence=_confidence(call), levels=levels)
         except FieldError as exc:
             raise _batch_error(exc, loaded.record.ref) from None
         except ValueError as exc:   # a library check that names no field
             raise RequestError(["body"], f"profile {loaded.record.ref}: {exc}") from None
         meta = {"profile": loaded.ref(), "classes": list(prof.classes),
                 "cov_dims": list(prof.cov_dims)}
-        out = calibrated_batch(request, res, prof.classes, _confidence(call), meta)
+        out = res.to_arrow(meta)
         return CallOutcome(200, write_stream(out), loaded.record.name, len(res), ARROW_STREAM)
 
 

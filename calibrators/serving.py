@@ -102,8 +102,8 @@ class CalibratedDetections:
 
     def to_records(self) -> list[dict[str, Any]]:
         """One JSON-ready dict per detection, in this order, with its identity
-        (`calibrators.io.records.calibrated_records`)."""
-        from calibrators.io.records import calibrated_records
+        (`calibrators.detections.calibrated_records`)."""
+        from calibrators.detections import calibrated_records
 
         return calibrated_records(self)
 

@@ -211,8 +211,10 @@ class LevelEllipseOut(BaseModel):
 
 
 class DetectionOut(BaseModel):
-    """A calibrated detection."""
+    """A calibrated detection; `row` and `id` with its frame's `frame_id` are its identity."""
 
+    row: int = Field(description="The detection's position in its frame's request "
+                                 "`detections` (or the detector's output order).")
     id: str | int | None = None
     label: str
     label_index: int

@@ -1,6 +1,7 @@
 """A nuScenes detection results document (the devkit's submission format), as accepted and
 returned by POST /v1/calibrate/nuscenes, with the extensions of docs/formats.md
-(`detection_logits`, `covariance`, `detection_score_raw`). Unknown keys are kept, and echoed
+(`detection_logits`, `covariance`, `detection_score_raw`, `detection_id`; the calibrated
+document's boxes add `ellipse`, `ellipses` and `detection_row`). Unknown keys are kept, and echoed
 back, so they and `meta` must hold finite numbers only (a NaN anywhere is a 422 naming it)."""
 
 from __future__ import annotations

@@ -10,21 +10,19 @@
 - `file_sha256`: content hash for provenance; `atomic_write`: a file replaced in one rename.
 """
 
+from calibrators.detections import ellipses_json, unbounded_none
 from calibrators.io.atomic import atomic_write
 from calibrators.io.formats import FORMATS, load_dump
 from calibrators.io.hashing import file_sha256
 from calibrators.io.npz import save_dump
 from calibrators.io.nuscenes import load_nuscenes
-from calibrators.io.nuscenes_write import (
-    calibrate_results_document,
-    ellipses_json,
-    save_nuscenes,
-    unbounded_none,
-)
+from calibrators.io.nuscenes_batch import calibrated_document, detections_from_nuscenes
+from calibrators.io.nuscenes_write import calibrate_results_document, save_nuscenes
 from calibrators.io.parquet import ParquetDataset, load_parquet, open_parquet
 from calibrators.io.parquet_write import ParquetWriter, save_parquet
 
 __all__ = ["FORMATS", "ParquetDataset", "ParquetWriter", "atomic_write",
-           "calibrate_results_document", "ellipses_json", "file_sha256", "load_dump",
+           "calibrate_results_document", "calibrated_document", "detections_from_nuscenes",
+           "ellipses_json", "file_sha256", "load_dump",
            "load_nuscenes", "load_parquet",
            "open_parquet", "save_dump", "save_nuscenes", "save_parquet", "unbounded_none"]

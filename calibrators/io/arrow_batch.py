@@ -18,7 +18,8 @@ A request batch has one row per detection:
 Lists may be fixed-size or variable-size Arrow lists, but every row of a column must have the
 same length; numbers may be any integer or float type and no value may be null. A column that
 breaks these rules is a `FieldError` naming it (and the row, where one is at fault). The
-response batch (`calibrated_batch`) has `frame_id`, `id` (when given), `label`, `label_index`,
+response batch (`calibrated_batch`) has `frame_id`, `row` (the request row), `id` (when
+given), `label`, `label_index`,
 `score`, `score_raw`, `class_scores` (when the profile gives them), `covariance [D·D]`,
 `distance`, `ellipse` (a struct at the ellipse confidence) and one struct `ellipse_<q>` per
 requested level (`semi_major`, `semi_minor` — null when unbounded —, `angle`), plus
@@ -29,13 +30,13 @@ from __future__ import annotations
 
 import json
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from calibrators.detections import WIRE_NAMES, Detections, box9
 from calibrators.exceptions import FieldError
 from calibrators.io.arrow_safe import MAX_INFLATED_BYTES, read_safe_stream
 from calibrators.serving import CalibratedDetections
@@ -45,25 +46,8 @@ EVIDENCE_COLUMNS = ("logits", "layer_logits", "score")
 KNOWN_COLUMNS = frozenset({"frame_id", "id", *EVIDENCE_COLUMNS, "label", "box", "layer_boxes",
                            "covariance", "ego_translation", "hypothesis_boxes",
                            "hypothesis_scores"})
-#: Library argument of `CalibrationProfile.calibrate` -> request column.
-LIBRARY_TO_COLUMN = {"logits": "logits", "layer_logits": "layer_logits", "scores": "score",
-                     "labels": "label", "boxes": "box", "distances": "box",
-                     "covariances": "covariance", "layer_boxes": "layer_boxes",
-                     "ego_xy": "ego_translation", "hyp_boxes": "hypothesis_boxes",
-                     "hyp_scores": "hypothesis_scores"}
-
-
-@dataclass
-class BatchRequest:
-    """A request batch as library arrays: `calibrate` are the keyword arguments of
-    `CalibrationProfile.calibrate` (without levels), `echo` the columns sent back as they
-    came (`frame_id`, `id`)."""
-
-    calibrate: dict[str, np.ndarray]
-    echo: dict[str, pa.Array]
-
-    def __len__(self) -> int:
-        return len(next(iter(self.echo.values())))
+#: Library argument of `CalibrationProfile.calibrate` -> request column (the one wire map).
+LIBRARY_TO_COLUMN = WIRE_NAMES
 
 
 def read_stream(data: bytes, max_rows: int | None = None,
@@ -75,9 +59,10 @@ def read_stream(data: bytes, max_rows: int | None = None,
     return read_safe_stream(data, max_rows, max_bytes)
 
 
-def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> BatchRequest:
-    """The library arrays of a request `batch` (module docstring); FieldError naming the
-    column (and `row`) that breaks the rules."""
+def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> Detections:
+    """The `Detections` of a request `batch` (module docstring): rows are the batch's rows,
+    `frame_id` and `id` the columns as they came (echoed back); FieldError naming the column
+    (and `row`) that breaks the rules."""
     names = batch.schema.names
     unknown = sorted(set(names) - KNOWN_COLUMNS)
     if unknown:
@@ -116,7 +101,7 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> BatchRequest
         if box.shape[1] not in (7, 9):
             raise FieldError("box", f"box must have 9 values (x, y, z, w, l, h, yaw, vx, vy) "
                                     f"or 7 (no velocity), got {box.shape[1]}")
-        kwargs["boxes"] = box if box.shape[1] == 9 else np.pad(box, ((0, 0), (0, 2)))
+        kwargs["boxes"] = box9(box)
     elif "layer_boxes" in kwargs:
         kwargs["boxes"] = kwargs["layer_boxes"][:, -1]
     else:
@@ -139,19 +124,23 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> BatchRequest
             raise FieldError("ego_translation", f"ego_translation must have 3 (or 2) values, "
                                                 f"got {ego.shape[1]}")
         kwargs["ego_xy"] = np.ascontiguousarray(ego[:, :2])
-    echo = {"frame_id": frame}
-    if "id" in names:
-        echo["id"] = batch.column("id")
-    return BatchRequest(kwargs, echo)
+    return Detections(frame_ids=frame, rows=np.arange(batch.num_rows, dtype=np.int64),
+                      ego_xy=kwargs.pop("ego_xy", np.zeros((batch.num_rows, 2))),
+                      detection_ids=batch.column("id") if "id" in names else None, **kwargs)
 
 
-def calibrated_batch(request: BatchRequest, res: CalibratedDetections, classes: Sequence[str],
-                     confidence: float, metadata: Mapping[str, Any]) -> pa.RecordBatch:
-    """The response batch of `res` (module docstring); `metadata` is stored as JSON under
-    the schema key `detcal`."""
-    n = len(res)
-    columns: dict[str, pa.Array] = dict(request.echo)
-    columns["label"] = pa.array(list(classes), pa.string()).take(pa.array(res.labels))
+def calibrated_batch(res: CalibratedDetections, metadata: Mapping[str, Any]) -> pa.RecordBatch:
+    """The response batch of `res` (module docstring), each row with its identity
+    (`frame_id`, `row`, `id` when given); `metadata` is stored as JSON under the schema key
+    `detcal`."""
+    n, det = len(res), res.detections
+    columns: dict[str, pa.Array] = {}
+    if det is not None:
+        columns["frame_id"] = _arrow(det.frame_ids)
+        columns["row"] = pa.array(det.rows, pa.int64())
+        if det.detection_ids is not None:
+            columns["id"] = _arrow(det.detection_ids)
+    columns["label"] = pa.array(list(res.classes), pa.string()).take(pa.array(res.labels))
     columns["label_index"] = pa.array(res.labels.astype(np.int32))
     columns["score"] = pa.array(res.scores)
     columns["score_raw"] = pa.array(res.scores_raw)
@@ -165,7 +154,7 @@ def calibrated_batch(request: BatchRequest, res: CalibratedDetections, classes: 
         columns[f"ellipse_{float(level)!r}"] = _ellipse_struct(region)
     if res.region_groups is not None:
         columns["region_group"] = pa.array(res.region_groups, pa.string())
-    meta = {"confidence": confidence, "levels": [float(q) for q in res.regions],
+    meta = {"confidence": res.ellipse_confidence, "levels": [float(q) for q in res.regions],
             "region_method": res.region_method, "cov_source": res.cov_source, **metadata}
     schema = pa.schema([pa.field(k, v.type) for k, v in columns.items()],
                        metadata={"detcal": json.dumps(meta)})
@@ -253,6 +242,11 @@ def _labels(arr: pa.Array, classes: Sequence[str]) -> np.ndarray:
         raise FieldError("label", f"unknown class {arr[row].as_py()!r} at row {row}; the "
                                   f"profile's classes are {list(classes)}", row=row)
     return index.to_numpy(zero_copy_only=False).astype(np.int64)
+
+
+def _arrow(values: Any) -> pa.Array:
+    """An Arrow column as it came, or numpy / Python values as one."""
+    return values if isinstance(values, pa.Array | pa.ChunkedArray) else pa.array(values)
 
 
 def _fixed(values: np.ndarray) -> pa.FixedSizeListArray:

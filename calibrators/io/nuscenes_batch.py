@@ -23,10 +23,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calibrators.detections import Detections
+from calibrators.detections import Detections, calibrated_records, detections_from_records
 from calibrators.exceptions import FieldError
 from calibrators.io.nuscenes_write import _DEVKIT_META, _box
-from calibrators.io.records import calibrated_records, detections_from_records
 from calibrators.vocab import quaternion_yaw
 
 if TYPE_CHECKING:
@@ -93,9 +92,9 @@ def calibrated_document(calibrated: CalibratedDetections | Sequence[CalibratedDe
                         calibration: Mapping[str, Any] | None = None,
                         meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The results document of `calibrated` (one result or several, e.g. one per evidence
-    form of a document) in the output contract of the module docstring; `meta` is kept
-    (plus `classes`, `score_mode` when unset, and `cov_dims`), `calibration` is written as the
-    document's top-level `calibration` key."""
+    form of a document) in the output contract of the module docstring; `meta` is kept and
+    gets `cov_dims` (None: the devkit's `use_*` flags and `classes`), `calibration` is written
+    as the document's top-level `calibration` key."""
     parts = [calibrated] if not isinstance(calibrated, Sequence) else list(calibrated)
     tokens: dict[Any, list[tuple[int, dict[str, Any]]]] = {}
     for part in parts:
@@ -123,9 +122,10 @@ def calibrated_document(calibrated: CalibratedDetections | Sequence[CalibratedDe
                 box["detection_id"] = rec["id"]
             tokens.setdefault(str(rec["frame_id"]), []).append((rec["row"], box))
     first = parts[0] if parts else None
-    out_meta = {**_DEVKIT_META, **(meta or {})}
+    out_meta = dict(meta) if meta is not None else dict(_DEVKIT_META)
     if first is not None:
-        out_meta.setdefault("classes", list(first.classes))
+        if meta is None:
+            out_meta["classes"] = list(first.classes)
         out_meta["cov_dims"] = list(first.cov_dims)
     doc: dict[str, Any] = {
         "meta": out_meta,

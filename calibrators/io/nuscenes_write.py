@@ -17,7 +17,6 @@ import numpy as np
 from calibrators.checks import (
     as_float_array,
     check_choice,
-    check_finite,
     check_length,
     check_probabilities,
 )
@@ -26,7 +25,7 @@ from calibrators.io.atomic import atomic_write
 from calibrators.vocab import BOX_FIELDS
 
 if TYPE_CHECKING:
-    from calibrators.serving import CalibratedDetections
+    pass
 
 _DEVKIT_META = {"use_camera": False, "use_lidar": False, "use_radar": False, "use_map": False,
                 "use_external": False}
@@ -132,46 +131,6 @@ def calibrate_results_document(document: dict, scores: np.ndarray,
             box["covariance"] = cov[i].tolist()
         if ellipses is not None:
             box["ellipses"] = None if ellipses[i] is None else dict(ellipses[i])
-    return out
-
-
-def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, Any]] | None]:
-    """Per detection of `calibrated` (`CalibrationProfile.calibrate(..., levels=...)`), its
-    served regions as JSON: `{str(float(q)): {"semi_major": m, "semi_minor": m, "angle": rad,
-    "method": "conformal" | "gaussian", "group": "car 15-30 m" | None}}` for each level `q`
-    (the group is None for gaussian regions), or None when the profile's cov_dims lack x or y.
-
-    The angle is the major axis's from +x (`calibrators.ellipse`). The semi-axes of an
-    unbounded region (a level beyond what its conformal group certifies: infinite radius) are
-    None. Raises a FieldError naming the level and the detection (`row`) of any other
-    semi-axis that is not finite.
-    """
-    n = len(calibrated)
-    method = calibrated.region_method
-    if method is None:
-        return [None] * n
-    groups = calibrated.region_groups
-    columns = []
-    for level, region in calibrated.regions.items():
-        key = str(float(level))
-        radii = calibrated.region_radii.get(level)
-        unbounded = (np.zeros(n, dtype=bool) if radii is None
-                     else np.isinf(np.asarray(radii, dtype=np.float64).reshape(n)))
-        arrays = [np.asarray(a, dtype=np.float64).reshape(n) for a in region]
-        for name, arr in zip(("semi_major", "semi_minor", "angle"), arrays, strict=True):
-            check_finite(f"ellipses[{key!r}].{name}", np.where(unbounded, 0.0, arr))
-        columns.append((key, *(unbounded_none(a, unbounded) for a in arrays[:2]),
-                        arrays[2].tolist()))
-    return [{key: {"semi_major": major[i], "semi_minor": minor[i], "angle": angle[i],
-                   "method": method, "group": None if groups is None else groups[i]}
-             for key, major, minor, angle in columns} for i in range(n)]
-
-
-def unbounded_none(values: np.ndarray, unbounded: np.ndarray) -> list[float | None]:
-    """`values [N]` as a list with None where `unbounded [N]` (JSON has no infinity)."""
-    out: list[float | None] = values.tolist()
-    for i in np.flatnonzero(unbounded).tolist():
-        out[i] = None
     return out
 
 

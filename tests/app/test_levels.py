@@ -147,7 +147,8 @@ def test_a_version_1_profile_serves_as_before_plus_gaussian_ellipses(client, dum
     rows = _calibrate(client, dump_given, detection, profile="thesis", levels=[0.5, 0.99])
     old = _reference(thesis_json, dump_given)        # what the service served before levels
     for j, row in enumerate(rows):
-        assert set(row) == before | {"ellipses"}
+        assert set(row) == before | {"ellipses", "row"}   # row: its identity in the frame
+        assert row["row"] == j
         assert row["score"] == old.scores[j] and row["score_raw"] == old.scores_raw[j]
         assert row["covariance"] == old.covariances[j].tolist()
         assert row["class_scores"] == old.class_scores[j].tolist()

@@ -36,12 +36,14 @@ def _batch(n: int = 4, **columns) -> pa.RecordBatch:
 def test_a_batch_becomes_the_library_arrays():
     batch = _batch(ego_translation=pa.array([[1.0, 2.0, 3.0]] * 4), id=pa.array([7, 8, 9, 10]))
     req = batch_request(read_stream(write_stream(batch)), CLASSES)
-    kw = req.calibrate
+    kw = req.calibrate_arguments()
     assert kw["logits"].shape == (4, 2) and kw["boxes"].shape == (4, 9)
     assert kw["covariances"].shape == (4, 2, 2) and kw["ego_xy"].tolist() == [[1.0, 2.0]] * 4
     np.testing.assert_array_equal(kw["logits"], np.stack(batch["logits"].to_numpy(
         zero_copy_only=False)))
-    assert req.echo["id"].to_pylist() == [7, 8, 9, 10] and len(req) == 4
+    assert req.detection_ids.to_pylist() == [7, 8, 9, 10] and len(req) == 4
+    assert req.rows.tolist() == [0, 1, 2, 3] and req.frame_ids.to_pylist() == ["f0", "f0", "f1",
+                                                                                "f1"]
 
 
 def test_variable_lists_seven_value_boxes_and_label_names_are_accepted():
@@ -49,7 +51,7 @@ def test_variable_lists_seven_value_boxes_and_label_names_are_accepted():
         "frame_id": pa.array([1, 1]), "score": pa.array([0.2, 0.9], pa.float32()),
         "label": pa.array(["pedestrian", "car"]),
         "box": pa.array([[1.0, 2, 0, 1, 1, 1, 0], [3.0, 4, 0, 1, 1, 1, 0]])})
-    kw = batch_request(batch, CLASSES).calibrate
+    kw = batch_request(batch, CLASSES).calibrate_arguments()
     assert kw["labels"].tolist() == [1, 0] and kw["boxes"].shape == (2, 9)
     assert kw["boxes"][:, 7:].tolist() == [[0, 0], [0, 0]]
     assert kw["scores"].dtype == np.float64
@@ -110,10 +112,11 @@ def test_a_calibrated_batch_keeps_row_order_and_marks_unbounded_axes_null():
         "logits": _fixed(dump.det_logits[:n, -1]), "box": _fixed(dump.det_boxes[:n, -1]),
         "covariance": _fixed(dump.det_cov[:n].reshape(n, -1))})
     req = batch_request(batch, profile.classes)
-    res = profile.calibrate(**req.calibrate, levels=[0.5, 0.999])
-    out = read_stream(write_stream(calibrated_batch(req, res, profile.classes, 0.95,
-                                                    {"profile": "p@1"})))
+    res = req.calibrate(profile, levels=[0.5, 0.999])
+    out = read_stream(write_stream(calibrated_batch(res, {"profile": "p@1"})))
     assert out["id"].to_pylist() == list(range(n))[::-1]
+    assert out["row"].to_pylist() == list(range(n))
+    assert out["frame_id"].to_pylist() == (np.arange(n) // 10).tolist()
     np.testing.assert_array_equal(out["score"].to_numpy(), res.scores)
     wide = out["ellipse_0.999"].field("semi_major")
     assert wide.null_count == n                      # 30-point groups cannot bound 0.999
