@@ -19,18 +19,15 @@ from app.cache import LoadedProfile
 from app.errors import RequestError
 from app.schemas.feedback import FeedbackFrame
 from app.store import AuditEntry, HealthChunk, HealthRecord, Store
+from calibrators.detections import box9, label_index
 from calibrators.drift import AlarmRule, DriftMonitor
 from calibrators.dump import Dump
+from calibrators.exceptions import FieldError
 from calibrators.health import FrameEvidence, HealthCounts, collect_evidence
 from calibrators.scores import predict
-from calibrators.vocab import BOX_FIELDS
 
 #: The alarm rule the service applies.
 RULE = AlarmRule()
-
-
-def _box9(box: Sequence[float]) -> list[float]:
-    return list(box) if len(box) == len(BOX_FIELDS) else [*box, 0.0, 0.0]
 
 
 def _form(shape: tuple[int, bool, int]) -> str:
@@ -39,15 +36,11 @@ def _form(shape: tuple[int, bool, int]) -> str:
 
 
 def _label(label: str | int, classes: Sequence[str], loc: list[str | int]) -> int:
-    if isinstance(label, int):
-        if label >= len(classes):
-            raise RequestError(loc, f"label index {label} is out of range for the profile's "
-                                    f"{len(classes)} classes")
-        return label
-    if label not in classes:
-        raise RequestError(loc, f"unknown class {label!r}; the profile's classes are "
-                                f"{list(classes)}")
-    return list(classes).index(label)
+    """The library's `label_index`, its error at `loc`."""
+    try:
+        return label_index(label, classes)
+    except FieldError as exc:
+        raise RequestError(loc, str(exc)) from None
 
 
 def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
@@ -74,7 +67,7 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
                 raise RequestError([*loc, "score" if det.score is not None else "scores"],
                                    "feedback needs each detection's logits or layer_logits "
                                    "(what the profile calibrates from)")
-            b = det.layer_boxes if det.layer_boxes is not None else [_box9(det.box or [])]
+            b = det.layer_boxes if det.layer_boxes is not None else [box9(det.box or [])]
             n_layers = max(len(z), len(b))
             if len(z) not in (1, n_layers) or len(b) not in (1, n_layers):
                 raise RequestError([*loc, "layer_boxes"], f"layer_logits has {len(z)} layers "
@@ -105,7 +98,7 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
         for gi, gt in enumerate(frame.ground_truth):
             gt_labels.append(_label(gt.label, prof.classes,
                                     ["body", "frames", fi, "ground_truth", gi, "label"]))
-            gt_boxes.append(_box9(gt.box))
+            gt_boxes.append(box9(gt.box))
             gt_frame.append(fi)
     n_layers = shape[0] if shape else 1
     width = len(prof.classes) + (1 if prof.score_mode == "softmax" else 0)
