@@ -127,6 +127,29 @@ def frames_dump(frames: Sequence[FeedbackFrame], loaded: LoadedProfile) -> Dump:
         raise RequestError(["body", "frames"], f"profile {loaded.record.ref}: {exc}") from None
 
 
+class DegenerateFeedback(ValueError):
+    """Feedback that cannot be evidence about calibration (`degenerate_reason`): refused
+    whole, so it never reaches a version's health."""
+
+
+def degenerate_reason(dump: Dump, counts: HealthCounts | None = None) -> str | None:
+    """Why `dump` is synthetic or degenerate feedback, or None. Refused: every detection box
+    of zero size, every ground-truth box of zero size, or (given its `counts`) detections and
+    ground truth of which not one pair matches (no true positive at all: a detector outage or
+    mislabelled frames, not a calibration drift). docs/production.md states the rule."""
+    def no_size(boxes: np.ndarray) -> bool:
+        return boxes.size > 0 and not np.any(boxes[..., 3:6] != 0)
+
+    if dump.n_detections and no_size(dump.det_boxes[:, -1]):
+        return f"all {dump.n_detections} detection boxes have zero size"
+    if len(dump.gt_labels) and no_size(dump.gt_boxes):
+        return f"all {len(dump.gt_labels)} ground-truth boxes have zero size"
+    if counts is not None and counts.detections and counts.gt and counts.tp == 0:
+        return (f"none of its {counts.detections} detections matches any of its {counts.gt} "
+                f"ground-truth boxes (no true positive)")
+    return None
+
+
 @dataclass(frozen=True)
 class Recorded:
     """What one feedback request added, the rows it wrote, the alarms it raised and whether
@@ -152,7 +175,12 @@ def record_feedback(store: Store, loaded: LoadedProfile, dump: Dump, chunk_frame
     health in chunks of `chunk_frames` frames, the last row referencing the kept dump
     `dump_sha256` (ValueError / FieldError from the library when the dump does not fit the
     profile)."""
-    ev = collect_evidence(dump, loaded.profile)
+    reason = degenerate_reason(dump)   # before matching: zero-size boxes all tie
+    if reason is None:
+        ev = collect_evidence(dump, loaded.profile)
+        reason = degenerate_reason(dump, ev.counts())
+    if reason is not None:
+        raise DegenerateFeedback(f"feedback refused, nothing recorded: {reason}")
     new: list[str] = []
     degraded_before = [False]
 

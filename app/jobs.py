@@ -27,7 +27,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
-from app.datasets import DATASET_KIND, referenced_dataset
+from app.datasets import DATASET_KIND, redact_paths, referenced_dataset
 from app.store import JobLostError, JobRecord, Store
 from app.store.files import InstanceLock
 from calibrators.fit import fit_profile
@@ -234,8 +234,10 @@ class JobRunner:
             log.warning("fit job %s: %s", job.id, exc)
         except Exception as exc:  # noqa: BLE001 - every failure is reported on the job
             log.warning("fit job %s failed: %s", job.id, exc)
+            why = redact_paths(redact_paths(f"{type(exc).__name__}: {exc}", self.datasets_dir),
+                               self.store.dumps_dir, "<dumps>")   # no server path in the job
             try:
-                self.store.fail_job(job.id, f"{type(exc).__name__}: {exc}", self.instance)
+                self.store.fail_job(job.id, why, self.instance)
             except Exception:  # noqa: BLE001
                 log.exception("could not record the failure of job %s", job.id)
         finally:

@@ -27,8 +27,15 @@ class Settings(BaseSettings):
                                    description="Body limit (413) except dump uploads.")
     max_upload_bytes: int = Field(512 * 2**20, gt=0, description="Body limit of multipart dump "
                                   "uploads (POST /v1/fit, /v1/feedback).")
-    max_dump_bytes: int = Field(1 * 2**30, gt=0, description="Inflated size of an uploaded dump "
-                                "(all NPZ arrays, or each nuScenes JSON file); 422 above.")
+    max_dump_bytes: int = Field(64 * 2**20, gt=0, description="Inflated size of an uploaded "
+                                "dump (all NPZ arrays, or each nuScenes JSON file) a fit or "
+                                "feedback request may carry; 413 (NPZ, from its headers, before "
+                                "inflating) or 422 above.")
+    max_fit_detections: int = Field(100_000, gt=0, description="Detections (or ground-truth "
+                                    "boxes) of one uploaded fit dump, and of each part of a "
+                                    "dataset fit in place (413 / 422 above).")
+    max_feedback_detections: int = Field(100_000, gt=0, description="Detections (or ground-"
+                                         "truth boxes) of one feedback request (413 above).")
     max_detections: int = Field(20_000, gt=0, description="Detections one calibrate or detect "
                                                           "request may carry (413 above).")
     host: str = "127.0.0.1"

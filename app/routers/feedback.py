@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 from typing import Any
 
 from fastapi import APIRouter, Request, status
@@ -21,10 +22,11 @@ from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.feedback import FeedbackRequest, FeedbackResult
 from app.settings import Settings
 from app.store import AuditEntry, Store
-from app.uploads import load_upload
+from app.uploads import check_declared, declared_npz, load_upload
 from calibrators.dump import Dump
 
 router = APIRouter(prefix="/v1", tags=["feedback"])
+log = logging.getLogger("detcal.feedback")
 register_body_model(FeedbackRequest)
 
 _FORM = {"type": "object", "required": ["dump"], "properties": {
@@ -48,10 +50,10 @@ async def feedback(request: Request, token: FeedbackIdDep, store: StoreDep, cach
     media = request.headers.get("content-type", "").split(";", 1)[0].strip().lower()
     form = media in ("multipart/form-data", "application/x-www-form-urlencoded")
     if form:
-        loaded, dump = await _upload(request, cache, settings.default_profile,
-                                     settings.max_dump_bytes)
+        loaded, dump = await _upload(request, cache, settings)
     elif media == "application/json" or media.endswith("+json"):
         body = await run_in_threadpool(parse_json, FeedbackRequest, await request.body())
+        _check_frames(body, settings.max_feedback_detections)
         loaded = await run_in_threadpool(cache.resolve, body.profile, settings.default_profile)
         dump = await run_in_threadpool(frames_dump, body.frames, loaded)
     else:
@@ -64,9 +66,21 @@ async def feedback(request: Request, token: FeedbackIdDep, store: StoreDep, cach
     return json_response(out, status.HTTP_200_OK)
 
 
-async def _upload(request: Request, cache: CacheDep, default: str, max_bytes: int
+def _check_frames(body: FeedbackRequest, limit: int) -> None:
+    """A 413 at `frames` when the JSON frames carry more detections or ground-truth boxes
+    than `DETCAL_MAX_FEEDBACK_DETECTIONS`."""
+    dets = sum(len(f.detections) for f in body.frames)
+    gts = sum(len(f.ground_truth) for f in body.frames)
+    if max(dets, gts) > limit:
+        raise RequestError(["body", "frames"], f"the feedback carries {dets} detections and "
+                           f"{gts} ground-truth boxes, more than the limit of {limit} per "
+                           f"request (DETCAL_MAX_FEEDBACK_DETECTIONS)", status=413)
+
+
+async def _upload(request: Request, cache: CacheDep, settings: Settings
                   ) -> tuple[LoadedProfile, Dump]:
-    """The profile and dump of a multipart feedback upload (422s name the form field)."""
+    """The profile and dump of a multipart feedback upload (422s name the form field; a dump
+    whose headers declare more than the per-request limits is a 413 before it is read)."""
     from calibrators.io import load_dump
 
     try:
@@ -85,9 +99,13 @@ async def _upload(request: Request, cache: CacheDep, default: str, max_bytes: in
         raise RequestError(["body", "dump"], "dump must be a file (an NPZ validation dump)")
     if ref is not None and not isinstance(ref, str):
         raise RequestError(["body", "profile"], "profile must be a text field")
-    loaded = await run_in_threadpool(cache.resolve, ref, default)
+    declared = await run_in_threadpool(declared_npz, upload.file)
+    check_declared(declared, max_bytes=settings.max_dump_bytes,
+                   max_detections=settings.max_feedback_detections, field="dump",
+                   what="feedback")
+    loaded = await run_in_threadpool(cache.resolve, ref, settings.default_profile)
     dump = await run_in_threadpool(
-        load_upload, lambda: load_dump(upload.file, max_bytes=max_bytes), "dump")
+        load_upload, lambda: load_dump(upload.file, max_bytes=settings.max_dump_bytes), "dump")
     return loaded, dump
 
 
@@ -103,7 +121,11 @@ def _record(store: Store, loaded: LoadedProfile, dump: Dump, settings: Settings,
         kept = keep_feedback(store, dump) if settings.auto_refit else None
         rec = record_feedback(store, loaded, dump, settings.health_chunk_frames, audit, kept)
     except ValueError as exc:   # FieldError included: the profile cannot score this dump
+        log.warning("feedback for %s refused: %s", loaded.record.ref, exc)
         raise RequestError(["body", field], f"profile {loaded.record.ref}: {exc}") from None
+    if rec.new_alarms:
+        log.warning("feedback for %s raised drift alarm(s): %s", loaded.record.ref,
+                    "; ".join(rec.new_alarms))
     counts, last = rec.evidence.counts(), rec.rows[-1]
     refit = None
     if (settings.auto_refit and rec.new_alarms and not rec.was_degraded

@@ -10,14 +10,14 @@ from typing import Annotated, Any
 from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import JSONResponse
 
-from app.datasets import DATASET_KIND, dataset_reference, resolve_dataset
+from app.datasets import DATASET_KIND, dataset_reference, open_dataset
 from app.deps import AdminIdDep, RunnerDep, SettingsDep, StoreDep
 from app.errors import RequestError
 from app.schemas.common import ErrorResponse, ProfileName
 from app.schemas.fit import FitForm
 from app.schemas.profiles import FitAccepted
 from app.store import AuditEntry, DumpRecord, Store
-from app.uploads import load_upload
+from app.uploads import check_declared, declared_npz, load_upload
 from calibrators.fit import check_fit_input
 from calibrators.options import FitOptions, OptionError
 
@@ -69,9 +69,12 @@ def fit(
     except OptionError as exc:
         raise RequestError(["body", exc.field], str(exc)) from None
     if dataset is not None:
-        stored, loaded = _dataset(store, settings.datasets_dir, dataset, fit_options)
+        stored, loaded = _dataset(store, settings.datasets_dir, dataset, fit_options,
+                                  settings.max_fit_detections)
         gt_sha = None
     elif dump is not None:
+        check_declared(declared_npz(dump.file), max_bytes=settings.max_dump_bytes,
+                       max_detections=settings.max_fit_detections, field="dump", what="fit")
         stored = store.put_dump(dump.file, "npz")
         gt_sha = None
         loaded = load_upload(lambda: load_dump(store.dump_path(stored.sha256),
@@ -82,6 +85,11 @@ def fit(
         loaded = load_upload(lambda: load_nuscenes(store.dump_path(stored.sha256),
                                                    store.dump_path(gt_sha),
                                                    max_bytes=settings.max_dump_bytes), "results")
+    if max(loaded.n_detections, len(loaded.gt_labels)) > settings.max_fit_detections:
+        raise RequestError(["body", "dump" if gt_sha is None else "results"],
+                           f"the fit dump holds {loaded.n_detections} detections and "
+                           f"{len(loaded.gt_labels)} ground-truth boxes, more than the limit of "
+                           f"{settings.max_fit_detections} (DETCAL_MAX_FIT_DETECTIONS)", status=413)
     try:
         check_fit_input(loaded, fit_options)
     except OptionError as exc:
@@ -97,16 +105,16 @@ def fit(
                         headers={"Location": body.status_url})
 
 
-def _dataset(store: Store, root: Path | None, name: str, options: FitOptions
-             ) -> tuple[DumpRecord, Any]:
+def _dataset(store: Store, root: Path | None, name: str, options: FitOptions,
+             max_part_detections: int) -> tuple[DumpRecord, Any]:
     """The stored reference of a dataset fit in place and its empty dump (for the option
-    checks): a 422 at `dataset` for a name outside `root` or a bad dataset, at the option
-    for one a streamed fit cannot reproduce."""
+    checks): a 422 at `dataset` for a name outside `root` (links included) or a bad dataset,
+    a 413 for a part too large, a 422 at the option for one a streamed fit cannot
+    reproduce."""
     from calibrators.fit_stream import check_stream_options
-    from calibrators.io.parquet import open_parquet
 
-    path = resolve_dataset(root, name)
-    empty = load_upload(lambda: open_parquet(path).empty_dump(), "dataset")
+    ds = open_dataset(root, name, max_part_detections)
+    empty = load_upload(ds.empty_dump, "dataset")
     try:
         check_stream_options(options)
     except OptionError as exc:

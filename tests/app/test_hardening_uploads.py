@@ -25,8 +25,8 @@ def post_traced(client, **kw) -> tuple[object, int]:
         tracemalloc.stop()
 
 
-def assert_refused(client, r, field: str, *fragments: str) -> None:
-    assert r.status_code == 422, r.text
+def assert_refused(client, r, field: str, *fragments: str, status: int = 422) -> None:
+    assert r.status_code == status, r.text
     (item,) = r.json()["detail"]
     assert item["loc"] == ["body", field], item
     for fragment in fragments:
@@ -34,10 +34,12 @@ def assert_refused(client, r, field: str, *fragments: str) -> None:
     assert client.get("/v1/jobs", headers=ADMIN).json() == []  # refused before a job was queued
 
 
-def test_declared_shape_of_10_to_the_12_is_a_422_not_a_memory_error(empty_client, settings):
+def test_declared_shape_of_10_to_the_12_is_a_413_not_a_memory_error(empty_client, settings):
+    """Over the per-request limits (issue 25): 413, from the headers, naming key and shape."""
     data = hostile_npz(arrays(), {"det_logits": ((10**12, 3, 10), "<f8", 0)})
     r, peak = post_traced(empty_client, files={"dump": ("bomb.npz", data)})
-    assert_refused(empty_client, r, "dump", "det_logits", "(1000000000000, 3, 10)", "limit")
+    assert_refused(empty_client, r, "dump", "det_logits", "(1000000000000, 3, 10)", "limit",
+                   status=413)
     assert str(settings.data_dir.resolve()) not in r.text
     assert peak < 16 * 2**20
 
@@ -49,12 +51,14 @@ def test_deflated_zeros_over_the_limit_are_refused_without_inflating(settings):
 
     from app.main import create_app
 
-    limited = settings.model_copy(update={"max_dump_bytes": 4 * 2**20})
+    limited = settings.model_copy(update={"max_dump_bytes": 4 * 2**20,
+                                          "max_fit_detections": 10**6})
     data = hostile_npz(arrays(), {"det_logits": ((266_667, 3, 10), "<f8", 64_000_080)})
     assert len(data) < 200_000
     with TestClient(create_app(limited)) as client:
         r, peak = post_traced(client, files={"dump": ("bomb.npz", data)})
-        assert_refused(client, r, "dump", "det_logits", "more than the limit of 4194304")
+        assert_refused(client, r, "dump", "det_logits", "more than the limit of 4194304",
+                       status=413)
     assert peak < 16 * 2**20
 
 
