@@ -25,8 +25,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `fit`, `evaluate` and `calibrate` subcommands."""
     fit = subparsers.add_parser(
         "fit", help="fit a calibration profile on a validation dump",
-        description="Match detections to ground truth, fit the temperature and the per-class "
-                    "depth k, print the before/after table and write the profile JSON. A "
+        description="Match detections to ground truth, choose and fit each stage of the "
+                    "profile (score calibration, covariance scaling, regions: see the fit "
+                    "options), print the chosen method of each stage with its held-out score "
+                    "and the before/after table, and write the profile JSON. A "
                     "Parquet dataset folder (detcal convert) is fit streamed, in bounded "
                     "memory, with the thesis methods (temperature, depth, gaussian: pass "
                     "--calibration 0 or name them), optionally on Dask (--dask).")
@@ -136,9 +138,36 @@ def run_fit(args: argparse.Namespace) -> int:
         profile = fit_profile(dump, options, dump_sha256=sha, progress=progress)
     _write_text(args.out, profile.to_json())
     print(format_table(ProfileReport.from_dict(profile.report)))
+    print(stages_text(profile.report))
     print(f"wrote {args.out}: T = {profile.temperature:.4g}, pooled k = {profile.pooled_k:.4g}, "
           f"cov_source {profile.cov_source}", file=sys.stderr)
     return 0
+
+
+def stages_text(report: dict[str, Any]) -> str:
+    """One line per stage of a fit report: the chosen method and its held-out score (the
+    selection split's NLL / ECE for scores and covariances; the held-out part's coverage of
+    the served regions, when the fit kept one)."""
+    sel = report.get("selection") or {}
+    lines = ["stages (chosen method: held-out score on the selection split)"]
+    score, cov = sel.get("score"), sel.get("covariance")
+    if score:
+        best = score["candidates"].get(score["chosen"], {})
+        lines.append(f"  score calibrator    {score['chosen']:<18} NLL {best.get('nll', 0):.4f}"
+                     f"  ECE {best.get('ece', 0):.4f}  ({len(score['candidates'])} candidates)")
+    if cov:
+        best = cov["candidates"].get(cov["chosen"], {})
+        lines.append(f"  covariance scaling  {cov['chosen']:<18} regression NLL "
+                     f"{best.get('nll', 0):.4f}  ({len(cov['candidates'])} candidates)")
+    regions = sel.get("regions")
+    if regions:
+        held = ((report.get("holdout") or {}).get("regions") or {}).get("coverage")
+        where = ("held-out coverage " + " / ".join(
+            f"{q:g}: {c:.3f}" for q, c in zip(held["levels"], held["overall"], strict=True))
+                 if held else "no held-out part (--holdout) to measure coverage on")
+        lines.append(f"  regions             {regions['chosen']:<18} {where}  "
+                     f"({regions['calibration_tps']} calibration TPs)")
+    return "\n".join(lines)
 
 
 def _fit_dataset(args: argparse.Namespace, options: FitOptions,

@@ -56,6 +56,18 @@ def test_fit_prints_the_table_and_writes_a_loadable_profile(fitted, workdir):
     assert len(profile.provenance["dump_sha256"]) == 64
 
 
+def test_fit_prints_each_stage_chosen_method_and_its_held_out_score(fitted, workdir):
+    profile = CalibrationProfile.from_json((workdir / "profile.json").read_text())
+    lines = {line.split()[0]: line for line in fitted.stdout.splitlines()
+             if line.startswith("  ") and line.split()[0] in ("score", "covariance", "regions")}
+    assert f" {profile.score_method} " in lines["score"] and "ECE" in lines["score"]
+    assert f" {profile.cov_method} " in lines["covariance"] and "NLL" in lines["covariance"]
+    assert f" {profile.region_method} " in lines["regions"]
+    assert "held-out coverage 0.5:" in lines["regions"]           # fit with --holdout 0.25
+    help_text = detcal("fit", "--help", cwd=workdir).stdout
+    assert "the per-class depth k" not in help_text and "score calibration" in help_text
+
+
 def test_evaluate_json_with_a_profile(fitted, workdir):
     result = detcal("evaluate", "val.npz", "--profile", "profile.json", "--json", cwd=workdir)
     assert result.returncode == 0, result.stderr
