@@ -30,16 +30,8 @@ import pyarrow as pa
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.io.arrow_safe import read_safe_stream
-from calibrators.io.reader_rows import (
-    ByteBudget,
-    Rows,
-    check_classes,
-    check_file,
-    check_scores,
-    class_index,
-    empty_rows,
-    rows_to_dump,
-)
+from calibrators.io.reader_files import ByteBudget, check_file
+from calibrators.io.reader_rows import Rows, check_scores, class_list, rows_to_dump
 
 #: The 26 categories of the AV2 3D object detection competition: the default class list.
 AV2_CATEGORIES = (
@@ -63,15 +55,14 @@ def load_av2(path: str | os.PathLike[str], ground_truth: str | os.PathLike[str] 
     detections' logs are read. At most `max_bytes` (default 2 GiB) are read and decoded.
     Errors are FieldErrors naming the file, the column and the row.
     """
-    classes = check_classes(classes)
-    index = class_index(classes, dict(class_map or {}))
+    classes, index = class_list(classes, class_map)
     budget = ByteBudget(max_bytes)
     det_path = check_file(path, "detections")
     table = _read(det_path, budget, scored=True)
     det = _rows(table, det_path.name, index, detections=True)
     frames = _tokens(table)
     if ground_truth is None:
-        return rows_to_dump(classes, det, empty_rows(), frames=frames)
+        return rows_to_dump(classes, det, None, frames=frames)
     gt_path = check_file(ground_truth, "annotations")
     gt_table = _read(gt_path, budget, scored=False)
     logs = set(table.column("log_id").to_pylist())

@@ -30,15 +30,8 @@ from calibrators.exceptions import FieldError
 from calibrators.io.kitti_calib import CAMERA_AXES, camera_boxes, parse_calib
 from calibrators.io.kitti_ignore import DONTCARE_OVERLAP, NEIGHBOURS, ignored_detections
 from calibrators.io.kitti_text import LabelTable, concat_tables, parse_label_file
-from calibrators.io.reader_rows import (
-    ByteBudget,
-    Rows,
-    check_classes,
-    check_file,
-    class_index,
-    empty_rows,
-    rows_to_dump,
-)
+from calibrators.io.reader_files import ByteBudget, check_file
+from calibrators.io.reader_rows import Rows, class_list, rows_to_dump
 
 #: The object types of the KITTI devkit readme.
 KITTI_TYPES = ("Car", "Van", "Truck", "Pedestrian", "Person_sitting", "Cyclist", "Tram", "Misc",
@@ -68,10 +61,9 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
     (m) is the matching distance of the ignore rules. At most `max_bytes` (default 2 GiB) are
     read in all. Errors are `FieldError`s naming the file, the line and the field.
     """
-    classes = check_classes(classes)
+    classes, index = class_list(classes, class_map)
     if score not in SCORE_KINDS:
         raise FieldError("score", f"score must be one of {list(SCORE_KINDS)}, got {score!r}")
-    index = class_index(classes, dict(class_map or {}))
     budget = ByteBudget(max_bytes)
     det_files = _label_files(detections, "detections")
     det = concat_tables([_read(p, name, budget) for p, name in det_files], "detections")
@@ -84,7 +76,7 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
     frames = det.tokens() if det.layout == "tracking" else \
         np.array([p.stem for p, _ in det_files], dtype=str)
     if ground_truth is None:
-        return rows_to_dump(classes, rows, empty_rows(), score_is_logit=score == "logit",
+        return rows_to_dump(classes, rows, None, score_is_logit=score == "logit",
                             frames=frames)
     gt = concat_tables([_read(p, name, budget) for p, name in
                         _truth_files(ground_truth, [p for p, _ in det_files])], "ground truth")

@@ -32,15 +32,8 @@ import numpy as np
 
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
-from calibrators.io.reader_rows import (
-    ByteBudget,
-    Rows,
-    check_classes,
-    check_file,
-    check_scores,
-    empty_rows,
-    rows_to_dump,
-)
+from calibrators.io.reader_files import ByteBudget, check_file
+from calibrators.io.reader_rows import Rows, check_scores, class_list, rows_to_dump
 from calibrators.scores import probability_logit
 
 PRED_KEYS = ("classes", "sample_idx", "bboxes_3d", "scores_3d", "labels_3d", "cls_scores_3d",
@@ -63,7 +56,7 @@ def load_mmdet3d(path: str | os.PathLike[str],
     pred_path = check_file(path, "predictions")
     pred = _read_npz(pred_path, PRED_KEYS, budget)
     name = pred_path.name
-    classes = check_classes(_strings(pred, "classes", name, required=True))
+    classes = class_list(_strings(pred, "classes", name, required=True), None)[0]
     box_type = str(pred["box_type_3d"]) if "box_type_3d" in pred else "LiDAR"
     if box_type != "LiDAR":
         raise FieldError("box_type_3d", f"{name}: box_type_3d is {box_type!r}; only LiDAR boxes "
@@ -71,7 +64,7 @@ def load_mmdet3d(path: str | os.PathLike[str],
     det = _rows(pred, name, "bboxes_3d", "labels_3d", len(classes))
     frames = _strings(pred, "frames", name) if "frames" in pred else None
     if ground_truth is None:
-        return rows_to_dump(classes, det, empty_rows(), frames=frames)
+        return rows_to_dump(classes, det, None, frames=frames)
     gt_path = check_file(ground_truth, "ground truth")
     truth = _read_npz(gt_path, GT_KEYS, budget)
     if "classes" in truth and tuple(_strings(truth, "classes", gt_path.name)) != classes:

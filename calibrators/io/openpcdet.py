@@ -29,15 +29,8 @@ from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.io.kitti_ignore import DONTCARE_OVERLAP, NEIGHBOURS, ignored_detections
 from calibrators.io.pickle_safe import load_restricted
-from calibrators.io.reader_rows import (
-    ByteBudget,
-    Rows,
-    check_classes,
-    check_file,
-    class_index,
-    empty_rows,
-    rows_to_dump,
-)
+from calibrators.io.reader_files import ByteBudget, check_file
+from calibrators.io.reader_rows import Rows, class_list, rows_to_dump
 
 #: Most detections (and ground-truth boxes) one load reads.
 MAX_ROWS = 50_000_000
@@ -55,15 +48,14 @@ def load_openpcdet(path: str | os.PathLike[str],
     (`kitti_ignore`). At most `max_bytes` (default 2 GiB) are read. Errors are FieldErrors
     naming the file, the frame entry and the key.
     """
-    classes = check_classes(classes)
-    index = class_index(classes, dict(class_map or {}))
+    classes, index = class_list(classes, class_map)
     budget = ByteBudget(max_bytes)
     res = check_file(path, "result.pkl")
     entries = _entries(load_restricted(budget.read(res, res.name), res.name), res.name)
     det, det_bbox, det_names = _predictions(entries, res.name, classes, index)
     frames = np.array([_token(e, f"{res.name}[{i}]") for i, e in enumerate(entries)], dtype=str)
     if ground_truth is None:
-        return rows_to_dump(classes, det, empty_rows(), frames=frames)
+        return rows_to_dump(classes, det, None, frames=frames)
     info = check_file(ground_truth, "infos")
     infos = _entries(load_restricted(budget.read(info, info.name), info.name), info.name)
     gt, neighbour, dc = _truth(infos, info.name, set(frames.tolist()), index)

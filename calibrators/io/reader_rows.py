@@ -1,4 +1,4 @@
-"""What the format readers share: bounded file reads, and rows of boxes -> `Dump`.
+"""What the format readers share: rows of boxes -> `Dump`, class lists, scores as logits.
 
 Each reader (KITTI text, OpenPCDet pickle, MMDetection3D arrays, Argoverse 2 feather) parses
 its own fields into two `Rows` (detections, ground truth) already in detcal's box layout and
@@ -9,9 +9,8 @@ and ground truth keep their input order.
 
 from __future__ import annotations
 
-import os
+from collections.abc import Mapping
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -20,8 +19,6 @@ from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.scores import probability_logit
 
-#: Default cap on the bytes one reader call reads from disk, all files together.
-MAX_READ_BYTES = 2 * 2**30
 #: Probability given to the classes a scores-only detection does not name (as nuScenes JSON).
 OTHER_CLASS_PROB = 1e-6
 
@@ -47,46 +44,6 @@ class Rows:
 def empty_rows() -> Rows:
     """Rows with N = 0 (e.g. no ground truth)."""
     return Rows(np.zeros(0, dtype=str), np.zeros(0, dtype=np.int64), np.zeros((0, 9)))
-
-
-class ByteBudget:
-    """Bytes still allowed for one reader call; `read(path, what)` charges each file."""
-
-    def __init__(self, max_bytes: int | None) -> None:
-        limit = MAX_READ_BYTES if max_bytes is None else max_bytes
-        if isinstance(limit, bool) or not isinstance(limit, int) or limit <= 0:
-            raise ValueError(f"max_bytes must be a positive integer, got {max_bytes!r}")
-        self.limit = limit
-        self.left = limit
-
-    def read(self, path: str | os.PathLike[str], what: str) -> bytes:
-        """The file's bytes, refused (FieldError on `what`) before reading past the budget."""
-        try:
-            with open(path, "rb") as fh:
-                size = os.fstat(fh.fileno()).st_size
-                if size > self.left:
-                    raise FieldError(what, f"{what}: reading it would pass the limit of "
-                                           f"{self.limit} bytes for one load (max_bytes)")
-                data = fh.read(self.left + 1)
-        except FieldError:
-            raise
-        except FileNotFoundError:
-            raise FieldError(what, f"{what}: no such file") from None
-        except OSError as exc:
-            raise FieldError(what, f"{what}: cannot be read: {exc.strerror or exc}") from None
-        if len(data) > self.left:
-            raise FieldError(what, f"{what}: reading it would pass the limit of {self.limit} "
-                                   "bytes for one load (max_bytes)")
-        self.left -= len(data)
-        return data
-
-
-def check_file(path: str | os.PathLike[str], what: str) -> Path:
-    """`path` as a Path that exists (FieldError naming `what` otherwise)."""
-    p = Path(path)
-    if not p.exists():
-        raise FieldError(what, f"{what}: no such file or folder")
-    return p
 
 
 def check_scores(scores: np.ndarray, where: str, key: str) -> None:
@@ -115,16 +72,17 @@ def score_logits(scores: np.ndarray, labels: np.ndarray, n_classes: int,
     return out
 
 
-def rows_to_dump(classes: tuple[str, ...], det: Rows, gt: Rows, *,
+def rows_to_dump(classes: tuple[str, ...], det: Rows, gt: Rows | None = None, *,
                  score_is_logit: bool = False, score_mode: str = "sigmoid",
                  frames: np.ndarray | None = None) -> Dump:
-    """A `Dump` (L = 1) of detections `det` and ground truth `gt` over the sorted frame tokens
-    (those of the rows and `frames`, the input's frames that may have neither).
+    """A `Dump` (L = 1) of detections `det` and ground truth `gt` (None: none) over the sorted
+    frame tokens (those of the rows and `frames`, the input's frames that may have neither).
 
     Logits: `det.logits` when given (`score_mode` says how to read them), else built from
     `det.scores` by `score_logits` in sigmoid mode. The label is kept as `det_label` when it
     is not the arg-max of the given logits.
     """
+    gt = empty_rows() if gt is None else gt
     known = set() if frames is None else set(np.asarray(frames, dtype=str).tolist())
     tokens = np.array(sorted(set(det.frames.tolist()) | set(gt.frames.tolist()) | known),
                       dtype=str)
@@ -159,6 +117,13 @@ def class_index(classes: tuple[str, ...], class_map: dict[str, str] | None
                                           f"not one of the classes {list(classes)}")
         index[str(source)] = index[target]
     return index
+
+
+def class_list(classes: object, class_map: Mapping[str, str] | None
+               ) -> tuple[tuple[str, ...], dict[str, int]]:
+    """(`check_classes(classes)`, `class_index` of it and `class_map`): a reader's classes."""
+    checked = check_classes(classes)
+    return checked, class_index(checked, dict(class_map or {}))
 
 
 def check_classes(classes: object) -> tuple[str, ...]:
