@@ -20,6 +20,7 @@ from app.calibrate_calls import CalibrateEngine
 from app.dashboard.page import DashboardRenderer
 from app.deps import AdminBeforeBodyMiddleware, refuse_empty_form_fields
 from app.errors import install_handlers
+from app.fields import FieldsMiddleware, fields_query
 from app.head import HeadAsGetMiddleware
 from app.jobs import JobRunner
 from app.limits import BodySizeLimitMiddleware
@@ -102,9 +103,12 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_handlers(app)
     install_openapi(app)
     # aliases and profile_health before profiles: /{name}/aliases is not /{name}/{version}
+    summary = {jobs, profile_health, profiles}   # large answers: `?fields=` trims them
     for module in (health, metrics, calibrate, fit, jobs, aliases, profile_health, profiles,
                    feedback, audit, detect, dashboard):
-        app.include_router(module.router)
+        app.include_router(module.router, dependencies=[Depends(fields_query)]
+                           if module in summary else None)
+    app.add_middleware(FieldsMiddleware)
     app.add_middleware(ArrowCalibrateMiddleware)   # innermost: inside the limits and metrics
     app.add_middleware(BodySizeLimitMiddleware, max_bytes=settings.max_request_bytes,
                        upload_bytes=settings.max_upload_bytes)
