@@ -25,7 +25,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         "fit a default profile from the bundled lidar detector if the store "
                         "has none")
     p.add_argument("--log-level", default="info",
-                   choices=("critical", "error", "warning", "info", "debug"))
+                   choices=("critical", "error", "warning", "info", "debug"),
+                   help="level of the server log (detcal.* and uvicorn loggers, on stderr)")
+    p.add_argument("--log-format", choices=("text", "json"),
+                   help="log lines as text or JSON objects (default: DETCAL_LOG_FORMAT or text)")
     p.set_defaults(func=serve)
 
 
@@ -47,7 +50,7 @@ def serve(args: argparse.Namespace) -> int:
     from app.settings import Settings, get_settings
 
     for flag, env in (("host", "HOST"), ("port", "PORT"), ("workers", "WORKERS"),
-                      ("data_dir", "DATA_DIR")):
+                      ("data_dir", "DATA_DIR"), ("log_format", "LOG_FORMAT")):
         value = getattr(args, flag)
         if value is not None:
             os.environ[f"DETCAL_{env}"] = str(value)
@@ -74,6 +77,14 @@ def serve(args: argparse.Namespace) -> int:
         multiprocess_metrics(settings.data_dir / "prometheus")
     print(f"detcal: serving on http://{settings.host}:{settings.port}/ "
           f"(data in {settings.data_dir.resolve()})", flush=True)
+    from app.logs import log_config
+
+    # Slow clients are cut off (app.connections: header and body deadlines, head size), idle
+    # kept-alive connections after keep_alive_s, and beyond limit_concurrency a 503.
     uvicorn.run("app.main:create_app", factory=True, host=settings.host, port=settings.port,
-                workers=settings.workers, log_level=args.log_level)
+                workers=settings.workers, log_level=args.log_level,
+                log_config=log_config(args.log_level, settings.log_format),
+                http="app.connections:GuardedHttpToolsProtocol",
+                timeout_keep_alive=settings.keep_alive_s,
+                limit_concurrency=settings.limit_concurrency)
     return 0

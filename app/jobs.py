@@ -228,8 +228,8 @@ class JobRunner:
         try:
             profile = self._fit(job, progress)
             record = self.store.complete_job(job.id, profile.to_json(), self.instance)
-            log.info("fit job %s: %s landed in %.1f s", job.id, record.ref,
-                     time.monotonic() - started)
+            log.info("fit job %s: %s landed in %.1f s%s", job.id, record.ref,
+                     time.monotonic() - started, ", active" if record.active else "")
         except JobLostError as exc:
             log.warning("fit job %s: %s", job.id, exc)
         except Exception as exc:  # noqa: BLE001 - every failure is reported on the job

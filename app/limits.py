@@ -1,12 +1,18 @@
 """Request body size limits: a 413 before the body is read when Content-Length is too big,
-and while streaming when it is absent or lies."""
+and while streaming when it is absent or lies. Every refusal (a 4xx other than 404) is logged
+on `detcal.http` with its method, path and status (never a header: no token); a client that
+goes away before its body is complete is logged, not an error."""
 
 from __future__ import annotations
 
 import json
+import logging
 
 from starlette.exceptions import HTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+log = logging.getLogger("detcal.http")
 
 
 class _TooLarge(HTTPException):
@@ -39,6 +45,7 @@ class BodySizeLimitMiddleware:
                     await _reply(send, 400, "Content-Length is not an integer")
                     return
                 if length > limit:
+                    _log_refusal(scope, 413)
                     await _reply(send, 413, f"request body of {length} bytes exceeds the "
                                             f"limit of {limit} bytes")
                     return
@@ -58,13 +65,24 @@ class BodySizeLimitMiddleware:
             nonlocal started
             if message["type"] == "http.response.start":
                 started = True
+                _log_refusal(scope, message["status"])
             await send(message)
 
         try:
             await self.app(scope, limited_receive, tracking_send)
         except _TooLarge as exc:
             if not started:
+                _log_refusal(scope, 413)
                 await _reply(send, 413, str(exc.detail))
+        except ClientDisconnect:
+            log.info("%s %s: the client went away before its body was complete",
+                     scope["method"], scope["path"])
+
+
+def _log_refusal(scope: Scope, status: int) -> None:
+    """Log a refused request (4xx but 404): method, path and status only."""
+    if 400 <= status < 500 and status != 404:
+        log.info("refused %s %s: %d", scope["method"], scope["path"][:200], status)
 
 
 def _multipart(scope: Scope) -> bool:

@@ -38,6 +38,23 @@ class Settings(BaseSettings):
                                          "truth boxes) of one feedback request (413 above).")
     max_detections: int = Field(20_000, gt=0, description="Detections one calibrate or detect "
                                                           "request may carry (413 above).")
+    header_timeout_s: float = Field(10.0, gt=0, description="Seconds a connection has to send "
+                                    "its request line and headers (from opening, or from the "
+                                    "first byte of a later request); 408 and closed after.")
+    body_timeout_s: float = Field(20.0, gt=0, description="Seconds a request body may take, "
+                                  "plus one per DETCAL_BODY_MIN_RATE bytes received; closed "
+                                  "after.")
+    body_min_rate: int = Field(8192, gt=0, description="Bytes per second a request body must "
+                               "keep up after its first DETCAL_BODY_TIMEOUT_S seconds.")
+    max_header_bytes: int = Field(65536, ge=1024, description="Request line and headers; 431 "
+                                  "and closed above.")
+    keep_alive_s: float = Field(5.0, gt=0, description="Idle seconds a kept-alive connection "
+                                "waits for its next request (uvicorn timeout_keep_alive).")
+    limit_concurrency: int = Field(512, ge=1, description="Connections and requests one server "
+                                   "process serves at once; 503 beyond (uvicorn "
+                                   "limit_concurrency).")
+    log_format: str = Field("text", pattern="^(text|json)$", description="Server log lines: "
+                            "`text`, or `json` (one JSON object per line).")
     host: str = "127.0.0.1"
     port: int = Field(8000, ge=0, le=65535)
     workers: int = Field(1, ge=1)

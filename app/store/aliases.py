@@ -7,6 +7,7 @@ row of `profile_aliases`. Moves serialize per profile name like activations.
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from datetime import datetime
 
@@ -17,6 +18,8 @@ from app.store.audit import AuditEntry
 from app.store.models import ActiveRow, AliasRow, utcnow
 from app.store.parts import StorePart, version_row
 from app.store.records import NotFoundError, ProfileRecord, aware
+
+log = logging.getLogger("detcal.store")
 
 #: The alias that is the active pointer.
 CHAMPION = "champion"
@@ -54,6 +57,7 @@ class AliasStore(StorePart):
             previous = None if current is None else current.version
             record = self._point_alias(s, name, alias, row.id, version)
             self._audit_previous(s, audit, previous)
+        log.info("alias %s@%s -> %d (was %s)", name, alias, version, previous)
         return record
 
     @staticmethod
@@ -81,6 +85,7 @@ class AliasStore(StorePart):
             record = AliasRecord(name, alias, row.version, aware(row.updated_at) or utcnow())
             s.delete(row)
             self._audit_previous(s, audit, row.version)
+        log.info("alias %s@%s deleted (was %d)", name, alias, record.version)
         return record
 
     def aliases(self, name: str) -> list[AliasRecord]:

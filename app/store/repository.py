@@ -19,6 +19,7 @@ app/store/audit.py; feedback health: app/store/health.py.
 from __future__ import annotations
 
 import hashlib
+import logging
 from collections.abc import Iterator
 from contextlib import contextmanager
 from datetime import datetime
@@ -58,6 +59,8 @@ from app.store.records import (
     aware,
 )
 from app.store.urls import engine_url
+
+log = logging.getLogger("detcal.store")
 
 
 def _sqlite_pragmas(dbapi_conn: Any, _record: Any) -> None:
@@ -254,6 +257,9 @@ class Store(AuditLog, AliasStore, DumpFiles, JobQueue, HealthStore):
             else:
                 _move(active, row)
             self._audit_previous(s, audit, previous)
+        log.info("activated %s@%d (was %s)%s", name, version,
+                 "none" if previous is None else f"{name}@{previous}",
+                 f" by {audit.token_id}" if audit else "")
         return _profile(row, version)
 
     def count_profiles(self) -> int:
