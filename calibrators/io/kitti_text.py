@@ -13,6 +13,7 @@ the bottom centre in rectified camera-0 coordinates (m); `rotation_y` in [-pi, p
 
 from __future__ import annotations
 
+import re
 from dataclasses import dataclass
 
 import numpy as np
@@ -25,6 +26,7 @@ NUMBER_FIELDS = ("truncated", "occluded", "alpha", "bbox", "bbox", "bbox", "bbox
                  "rotation_y")
 #: Field counts: (object, tracking) x (without, with score).
 OBJECT_COUNTS, TRACKING_COUNTS = (15, 16), (17, 18)
+_WHOLE = re.compile(r"-?[0-9]{1,18}")
 
 
 @dataclass(frozen=True)
@@ -126,7 +128,7 @@ def _number(text: str, field: str, at: str, number: int) -> float:
 
 
 def _whole(text: str, field: str, at: str, number: int, minimum: int = 0) -> int:
-    if not text.lstrip("-").isdigit() or int(text) < minimum or len(text) > 18:
+    if not _WHOLE.fullmatch(text) or int(text) < minimum:
         raise FieldError(field, f"{at}: {field} must be a whole number >= {minimum}, got "
                                 f"{text[:40]!r}", row=number)
     return int(text)

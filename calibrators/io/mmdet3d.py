@@ -24,6 +24,7 @@ is not read), and optionally `classes`, which must then equal the predictions'.
 
 from __future__ import annotations
 
+import math
 import os
 import zipfile
 from collections.abc import Mapping
@@ -80,8 +81,9 @@ def _read_npz(path: os.PathLike[str], keys: tuple[str, ...], budget: ByteBudget
     name = path.name  # type: ignore[attr-defined]
     try:
         with zipfile.ZipFile(path) as archive:
-            inflated = sum(info.file_size for info in archive.infolist())
-    except (zipfile.BadZipFile, OSError, EOFError):
+            inflated = sum(max(info.file_size, _declared_bytes(archive, info))
+                           for info in archive.infolist())
+    except (zipfile.BadZipFile, OSError, EOFError, ValueError):
         raise FieldError("npz", f"{name}: not an NPZ archive (a zip of .npy arrays, as "
                                 "numpy.savez writes)") from None
     if inflated > budget.left:
@@ -97,8 +99,22 @@ def _read_npz(path: os.PathLike[str], keys: tuple[str, ...], budget: ByteBudget
             return {k: npz[k] for k in npz.files}
     except FieldError:
         raise
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile) as exc:
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, MemoryError) as exc:
         raise FieldError("npz", f"{name}: an array cannot be read: {str(exc)[:160]}") from None
+
+
+def _declared_bytes(archive: zipfile.ZipFile, info: zipfile.ZipInfo) -> int:
+    """Bytes the `.npy` header of a member declares (0 for a member that is no `.npy`: np.load
+    refuses it later); read before any array is allocated."""
+    with archive.open(info) as fh:
+        try:
+            version = np.lib.format.read_magic(fh)
+            read = np.lib.format.read_array_header_1_0 if version == (1, 0) \
+                else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read(fh, max_header_size=10_000)
+        except ValueError:
+            return 0
+    return math.prod(shape) * dtype.itemsize
 
 
 def _strings(arrays: Mapping[str, np.ndarray], key: str, name: str,

@@ -94,7 +94,10 @@ def _array(entry: dict, key: str, where: str, shape: tuple[int | None, ...],
     """entry[key] as an array of `shape` (None: any size) and kind (f float, i int, U str)."""
     if key not in entry:
         raise FieldError(key, f"{where}: missing {key!r}")
-    arr = np.asarray(entry[key])
+    try:
+        arr = np.asarray(entry[key])
+    except (ValueError, TypeError) as exc:  # ragged nested lists
+        raise FieldError(key, f"{where}.{key} is not an array: {str(exc)[:120]}") from None
     if kind == "U":
         ok = arr.dtype.kind in "US" or (arr.dtype.kind == "O" and all(
             isinstance(v, str) for v in arr.reshape(-1).tolist()))

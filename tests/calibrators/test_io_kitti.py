@@ -212,6 +212,8 @@ def test_malformed_files(tmp_path):
         load_kitti(track, write(tmp_path / "gt2", {"0001.txt": [CAR]}))
     with pytest.raises(FieldError, match=r"line 1: frame must be a whole number"):
         load_kitti(write(tmp_path / "trk2", {"0001.txt": ["x 1 " + CAR + " 0.9"]}))
+    with pytest.raises(FieldError, match=r"line 1: track_id must be a whole number >= -1"):
+        load_kitti(write(tmp_path / "trk3", {"0001.txt": ["0 --1 " + CAR + " 0.9"]}))
 
 
 LINES = [f"Car 0 0 0 {100 + 9 * k}.0 150.0 {160 + 9 * k}.0 250.0 1.5 1.6 3.9 "

@@ -7,6 +7,9 @@ Fixtures are arrays in the layout of `LiDARInstance3DBoxes.tensor` (x y z dx dy 
 
 from __future__ import annotations
 
+import io
+import zipfile
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -113,6 +116,16 @@ def test_malformed_files(tmp_path):
         load_mmdet3d(save(tmp_path, "p.npz", predictions()), gt)
     with pytest.raises(FieldError, match="format must be one of"):
         load_dump(tmp_path / "p.npz", format="mmdet")
+
+
+def test_a_header_declaring_terabytes_is_refused_before_allocating(tmp_path):
+    header = io.BytesIO()
+    np.lib.format.write_array_header_1_0(
+        header, {"descr": "<f8", "fortran_order": False, "shape": (10**12,)})
+    with zipfile.ZipFile(tmp_path / "bomb.npz", "w") as archive:
+        archive.writestr("bboxes_3d.npy", header.getvalue() + bytes(64))
+    with pytest.raises(FieldError, match=r"bomb.npz: inflates to 8000000000000 bytes"):
+        load_mmdet3d(tmp_path / "bomb.npz")
 
 
 @settings(max_examples=25, deadline=None)

@@ -161,6 +161,7 @@ def test_restricted_unpickler_refuses_other_globals():
                                                           r"but name is 'car'"),
     (lambda r: r[0].update(name=np.array(["car", "dog"])), r"name\[1\] = 'dog' is not one of"),
     (lambda r: r[0].update(name=np.array([1, 2])), r"\[0\].name must be strings"),
+    (lambda r: r[0].update(score=[0.5, [0.1, 0.2]]), r"\[0\].score is not an array"),
     (lambda r: [r[0].pop("frame_id"), r[0].pop("metadata")], r"\[0\]: has no frame_id"),
     (lambda r: r[0]["boxes_lidar"].__setitem__((0, 3), -1.0), r"boxes_lidar\[0\] has a size"),
 ])
