@@ -25,6 +25,7 @@ from app.head import HeadAsGetMiddleware
 from app.jobs import JobRunner
 from app.limits import BodySizeLimitMiddleware
 from app.offload import CalibrateRunner
+from app.parent_watch import die_with_supervisor
 from app.prometheus import MetricsMiddleware, ServiceMetrics
 from app.routers import (
     aliases,
@@ -65,6 +66,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         # Worker threads calibrating a large request hold the GIL in long stretches; a
         # shorter switch interval lets the event loop answer /healthz in between.
         sys.setswitchinterval(SWITCH_INTERVAL_S)
+        die_with_supervisor()   # a `--workers N` worker ends with its supervisor, even on SIGKILL
         settings.data_dir.mkdir(parents=True, exist_ok=True)
         store = Store(settings.sqlalchemy_url, settings.dumps_dir)
         cache = ProfileCache(store)

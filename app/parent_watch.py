@@ -1,7 +1,8 @@
 """Child processes of the server (calibrate workers) that die with it, even when it is killed
 with SIGKILL and has no chance to stop them.
 
-Two mechanisms, either enough on its own:
+The same goes for the uvicorn worker processes of `detcal serve --workers N`
+(`die_with_supervisor`, called as the app starts). Two mechanisms, either enough on its own:
 
 - Linux's parent-death signal (`prctl(PR_SET_PDEATHSIG, SIGKILL)`): the kernel kills the
   child when the thread that started it ends. The calibrate pool is started from the server's
@@ -18,6 +19,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import multiprocessing
 import os
 import signal
 import sys
@@ -38,6 +40,17 @@ def die_with_parent(parent_pid: int, poll_s: float = POLL_S) -> bool:
                               name="detcal-parent-watch")
     thread.start()
     return armed
+
+
+def die_with_supervisor() -> bool:
+    """In a process started by multiprocessing (a `uvicorn --workers N` worker), end it when
+    its parent, the supervisor, ends; True when armed. A server started any other way keeps
+    running when whatever launched it exits."""
+    parent = multiprocessing.parent_process()
+    if parent is None or parent.pid is None:
+        return False
+    die_with_parent(parent.pid)
+    return True
 
 
 def _set_pdeathsig() -> bool:

@@ -8,10 +8,12 @@ import json
 import os
 import signal
 import time
+from collections.abc import Iterator
 
 import httpx
 import pytest
 
+from tests.e2e.conftest import Server, serving
 from tests.e2e.proc_tree import detcal_processes_of, tree
 
 pytestmark = pytest.mark.e2e
@@ -26,14 +28,21 @@ def _start_pool(url: str) -> None:
     assert r.status_code < 500, r.text
 
 
-def test_kill9_leaves_no_pool_worker_or_tracker(own_server):
-    pid = own_server.proc.pid
-    _start_pool(own_server.url)
+@pytest.fixture(params=[1, 2], ids=["workers1", "workers2"])
+def killed_server(request, tmp_path) -> Iterator[Server]:
+    srv = Server(tmp_path / "data")
+    srv.serve_args = ("--workers", "2") if request.param == 2 else ()
+    yield from serving(srv)
+
+
+def test_kill9_leaves_no_pool_worker_or_tracker(killed_server):
+    pid = killed_server.proc.pid
+    _start_pool(killed_server.url)
     members = tree(pid)
     children = [p for p in members if p != pid]
     assert len(children) >= 2, f"expected a pool worker and a resource tracker: {members}"
     os.kill(pid, signal.SIGKILL)
-    own_server.proc.wait(10)
+    killed_server.proc.wait(10)
     deadline = time.monotonic() + 5.0
     left = detcal_processes_of(children)
     while left and time.monotonic() < deadline:
