@@ -50,6 +50,7 @@ from calibrators.fit_regions import (
 )
 from calibrators.fit_scores import ScoreFit, fit_score_stage
 from calibrators.matched import (
+    canonical_order,
     match_dump,
     resolve_cov_source,
     select_detections,
@@ -92,7 +93,9 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
     if dump_sha256 is None:
         dump_sha256 = dump_digest(dump)
 
-    work = dump if min_score is None else select_detections(dump, dump.det_scores >= min_score)
+    work = canonical_order(dump)   # the same profile whatever the order of frames and boxes
+    if min_score is not None:
+        work = select_detections(work, work.det_scores >= min_score)
     if work.n_detections == 0:
         raise ValueError(f"min_score={min_score} leaves no detection to fit on")
     fit_part, held_part = split_frames(work, holdout, seed)

@@ -44,7 +44,7 @@ from calibrators.fit import base_profile, check_fit_input, selection_of, source_
 from calibrators.fit_regions import CovarianceFit, covariance_fit, fit_region_stage
 from calibrators.fit_scores import ScoreFit
 from calibrators.io.parquet import ParquetDataset, open_parquet
-from calibrators.matched import held_out_frames, resolve_cov_source
+from calibrators.matched import canonical_order, held_out_frames, resolve_cov_source
 from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibrationProfile, make_provenance
 from calibrators.stream_chunks import (
@@ -113,7 +113,7 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     ds = open_parquet(path)
     empty = ds.empty_dump()
     source = check_fit_input(empty, opts)
-    held = held_out_frames(ds.n_frames, opts.holdout, opts.seed)
+    held = held_out_frames(ds.frames()[0], opts.holdout, opts.seed)
     check_stream_options(opts, ds.n_frames - int(held.sum()))
     sources = (source, *_other_sources(empty, source, opts))
     mapper = Mapper(client)
@@ -281,4 +281,4 @@ def _gather(chunks: list[Chunk], keep: np.ndarray, mapper: Mapper) -> Any:
     masks = [keep[c.dataset.parts[c.index].first:c.dataset.parts[c.index].stop] for c in chunks]
     todo = [(c, m) for c, m in zip(chunks, masks, strict=True) if m.any()]
     parts = mapper.map(frames_of, [c for c, _ in todo], [m for _, m in todo])
-    return concat_frames([p for p in parts if p is not None])
+    return canonical_order(concat_frames([p for p in parts if p is not None]))  # as fit_profile

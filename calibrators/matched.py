@@ -12,7 +12,9 @@ its final decoder layer.
 
 from __future__ import annotations
 
+import hashlib
 from collections.abc import Sequence
+from dataclasses import replace
 
 import numpy as np
 
@@ -24,8 +26,9 @@ from calibrators.modulation import modulate_logits
 from calibrators.options import OptionError
 from calibrators.vocab import BOX_INDEX, COV_SOURCE_CHOICES, check_dims, wrap_angle
 
-__all__ = ["check_dims", "held_out_frames", "match_dump", "raw_covariances", "resolve_cov_source",
-           "select_detections", "split_frames", "tp_residuals", "ts_labels", "ts_logits"]
+__all__ = ["canonical_order", "check_dims", "held_out_frames", "match_dump", "raw_covariances",
+           "resolve_cov_source", "select_detections", "split_frames", "tp_residuals",
+           "ts_labels", "ts_logits"]
 
 
 def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> str:
@@ -140,24 +143,58 @@ def select_detections(dump: Dump, keep: np.ndarray) -> Dump:
 
 
 def split_frames(dump: Dump, holdout: float, seed: int) -> tuple[Dump, Dump | None]:
-    """(fit part, held-out part or None): a seeded random `holdout` fraction of the frames.
+    """(fit part, held-out part or None): a seeded random `holdout` fraction of the frames,
+    drawn by frame token (`held_out_frames`), so the same frames whatever their order.
 
     At least one frame is held out when `holdout > 0`; at least one must remain to fit on.
     """
     if holdout <= 0:
         return dump, None
-    held = held_out_frames(dump.n_frames, holdout, seed)
+    held = held_out_frames(dump.frame_ids, holdout, seed)
     return dump.select_frames(~held), dump.select_frames(held)
 
 
-def held_out_frames(n_frames: int, holdout: float, seed: int) -> np.ndarray:
-    """`[F]` bool: the frames `split_frames` holds out of `n_frames` (a streamed fit picks the
-    same ones). At least one when `holdout > 0`; at least one must remain to fit on."""
+def held_out_frames(frame_ids: np.ndarray, holdout: float, seed: int) -> np.ndarray:
+    """`[F]` bool: the frames of tokens `frame_ids [F]` that `split_frames` holds out (a
+    streamed fit picks the same ones): the `round(holdout · F)` frames whose seeded token hash
+    is smallest, so a frame's side depends on its token and the seed, never on where it sits.
+    At least one when `holdout > 0`; at least one must remain to fit on."""
+    n_frames = len(frame_ids)
     held = np.zeros(n_frames, dtype=bool)
     if holdout <= 0:
         return held
     n_hold = max(1, int(round(holdout * n_frames)))
     if n_hold >= n_frames:
         raise ValueError(f"holdout={holdout} leaves no frame to fit on ({n_frames} frames)")
-    held[np.random.default_rng(seed).permutation(n_frames)[:n_hold]] = True
+    keys = [hashlib.blake2b(f"{int(seed)}:{token}".encode(), digest_size=8).digest()
+            + str(token).encode() for token in np.asarray(frame_ids).tolist()]
+    held[sorted(range(n_frames), key=keys.__getitem__)[:n_hold]] = True
     return held
+
+
+def canonical_order(dump: Dump) -> Dump:
+    """`dump` with its frames sorted by token and, within a frame, its detections and
+    ground-truth boxes sorted by their values: the same dump whatever order its frames and
+    detections came in (a fit on it is then order-free, float sums included)."""
+    frames = np.argsort(np.asarray(dump.frame_ids).astype(str), kind="stable")
+    new_of_old = np.argsort(frames)
+    det_frame, gt_frame = new_of_old[dump.det_frame], new_of_old[dump.gt_frame]
+    det_keys = [dump.det_boxes.reshape(dump.n_detections, -1),
+                dump.det_logits.reshape(dump.n_detections, -1)]
+    det_keys += [a.reshape(dump.n_detections, -1) for a in
+                 (dump.det_cov, dump.det_hyp_boxes, dump.det_hyp_scores, dump.det_label)
+                 if a is not None]
+    det = np.lexsort([*np.concatenate(det_keys, axis=1).T[::-1], det_frame])
+    gt = np.lexsort([*dump.gt_boxes.T[::-1], dump.gt_labels, gt_frame])
+
+    def take(arr: np.ndarray | None) -> np.ndarray | None:
+        return None if arr is None else arr[det]
+
+    ego = dump.ego_translation
+    return replace(dump, frame_ids=dump.frame_ids[frames], det_frame=det_frame[det],
+                   det_logits=dump.det_logits[det], det_boxes=dump.det_boxes[det],
+                   det_cov=take(dump.det_cov), det_hyp_boxes=take(dump.det_hyp_boxes),
+                   det_hyp_scores=take(dump.det_hyp_scores), det_label=take(dump.det_label),
+                   gt_frame=gt_frame[gt], gt_labels=dump.gt_labels[gt],
+                   gt_boxes=dump.gt_boxes[gt],
+                   ego_translation=None if ego is None else ego[frames])
