@@ -20,7 +20,7 @@ from pathlib import Path
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `report-v2` subcommand."""
     p = subparsers.add_parser(
-        "report-v2", help="unified-vs-group detector page (issue 13)",
+        "report-v2", help="unified-vs-group detector page (docs/report/detectors_v2.md)",
         description="mAP / per-class AP, class switches per decoder layer, inter-group std, "
                     "attention-spread trends and the hypotheses vs layers covariance sources "
                     "of a group-head model (WEIGHTS) against a unified-head one (BASELINE), "
