@@ -58,8 +58,8 @@ class Server:
             env.pop(name, None)
         if self.token_env is not None:
             env["DETCAL_ADMIN_TOKEN"] = self.token_env
-        cmd = [*_detcal(), "serve", *self.serve_args, "--host", "127.0.0.1", "--port",
-               str(self.port), "--data-dir", str(self.data_dir), "--log-level", "warning"]
+        cmd = [*_detcal(), "serve", "--host", "127.0.0.1", "--port", str(self.port),
+               "--data-dir", str(self.data_dir), "--log-level", "warning", *self.serve_args]
         self.proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=self.log.open("a"),
                                      stderr=subprocess.STDOUT)
         self.starts += 1
