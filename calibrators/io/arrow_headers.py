@@ -23,6 +23,8 @@ from __future__ import annotations
 import struct
 from dataclasses import dataclass
 
+import numpy as np
+
 CODECS = {0: "lz4_frame", 1: "zstd"}
 _MESSAGE_HEADER = 2          # field index of Message.header (header_type is 1)
 _RECORD_BATCH, _DICTIONARY_BATCH = 3, 2   # MessageHeader union tags
@@ -150,4 +152,5 @@ def _structs(buf: memoryview, table: int, index: int) -> tuple[int, tuple[tuple[
     start = vector + 4
     if start + 16 * count > len(buf):
         raise ValueError(f"a vector of {count} structs overruns the metadata")
-    return start, tuple(struct.unpack_from("<qq", buf, start + 16 * i) for i in range(count))
+    pairs = np.frombuffer(buf, "<i8", count=2 * count, offset=start).reshape(count, 2)
+    return start, tuple(map(tuple, pairs.tolist()))

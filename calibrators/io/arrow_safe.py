@@ -92,13 +92,14 @@ def read_safe_stream(data: bytes, max_rows: int | None = None,
     return _with_identity_copied(batches, schema)
 
 
-def plain_stream(data: bytes) -> bool:
-    """Whether `data` is an Arrow stream whose record batches are all stored uncompressed
-    (read from the message headers only): such a body decodes to at most its own size."""
+def plain_stream(data: bytes, max_messages: int = 16) -> bool:
+    """Whether `data` is an Arrow stream of at most `max_messages` messages whose record
+    batches are all stored uncompressed (read from the message headers only): such a body
+    decodes to at most its own size, in a few steps."""
     try:
         reader = pa.ipc.MessageReader.open_stream(pa.BufferReader(data))
-        for message in reader:
-            if message.type == "dictionary":
+        for i, message in enumerate(reader):
+            if i >= max_messages or message.type == "dictionary":
                 return False
             if message.type == "record batch" and batch_header(message.metadata).codec:
                 return False
