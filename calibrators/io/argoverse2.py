@@ -62,14 +62,15 @@ def load_av2(path: str | os.PathLike[str], ground_truth: str | os.PathLike[str] 
     det = _rows(table, det_path.name, index, detections=True)
     frames = _tokens(table)
     if ground_truth is None:
-        return rows_to_dump(classes, det, None, frames=frames)
+        return rows_to_dump(classes, det, None, frames=frames, source=det_path.name)
     gt_path = check_file(ground_truth, "annotations")
     gt_table = _read(gt_path, budget, scored=False)
     logs = set(table.column("log_id").to_pylist())
     gt_table = gt_table.filter(pa.array([v in logs for v in
                                          gt_table.column("log_id").to_pylist()]))
     gt = _rows(gt_table, gt_path.name, index, detections=False)
-    return rows_to_dump(classes, det, gt, frames=np.concatenate([frames, _tokens(gt_table)]))
+    return rows_to_dump(classes, det, gt, frames=np.concatenate([frames, _tokens(gt_table)]),
+                        source=det_path.name)
 
 
 def _read(path: os.PathLike[str], budget: ByteBudget, scored: bool) -> pa.Table:
@@ -131,8 +132,10 @@ def _rows(table: pa.Table, name: str, index: Mapping[str, int], detections: bool
         row = int(np.flatnonzero(keep & np.any(size <= 0, axis=1))[0])
         raise FieldError("length_m", f"{name}: length_m, width_m, height_m must be > 0, row "
                                      f"{row} has {size[row].tolist()}", row=row)
-    qw, qx, qy, qz = (values[c] for c in ("qw", "qx", "qy", "qz"))
-    zero = np.flatnonzero(keep & (qw ** 2 + qx ** 2 + qy ** 2 + qz ** 2 == 0))
+    quat = np.stack([values[c] for c in ("qw", "qx", "qy", "qz")], axis=1)
+    scale = np.max(np.abs(quat), axis=1, keepdims=True)  # no overflow in the squares below
+    zero = np.flatnonzero(keep & (scale[:, 0] == 0))
+    qw, qx, qy, qz = (quat / np.where(scale > 0, scale, 1.0)).T
     if len(zero):
         raise FieldError("qw", f"{name}: row {zero[0]} has the zero quaternion (no rotation)",
                          row=int(zero[0]))

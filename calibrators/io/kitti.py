@@ -77,7 +77,7 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
         np.array([p.stem for p, _ in det_files], dtype=str)
     if ground_truth is None:
         return rows_to_dump(classes, rows, None, score_is_logit=score == "logit",
-                            frames=frames)
+                            frames=frames, source=_source_name(detections))
     gt = concat_tables([_read(p, name, budget) for p, name in
                         _truth_files(ground_truth, [p for p, _ in det_files])], "ground truth")
     if len(gt.types) and len(det.types) and gt.layout != det.layout:
@@ -89,7 +89,14 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
     return rows_to_dump(classes, _select(rows, keep),
                         Rows(gt.tokens()[truth], gt_labels[truth], _boxes(gt, truth, to_frame)),
                         score_is_logit=score == "logit",
-                        frames=np.concatenate([frames, gt.tokens()]))
+                        frames=np.concatenate([frames, gt.tokens()]),
+                        source=_source_name(detections))
+
+
+def _source_name(source: PathArg | Sequence[PathArg]) -> str:
+    """The detections' name for messages: the (first) file or folder given."""
+    first = source if isinstance(source, str | os.PathLike) else next(iter(source), "")
+    return Path(first).name or "detections"
 
 
 def _label_files(source: PathArg | Sequence[PathArg], what: str) -> list[tuple[Path, str]]:

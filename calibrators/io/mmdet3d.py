@@ -65,14 +65,14 @@ def load_mmdet3d(path: str | os.PathLike[str],
     det = _rows(pred, name, "bboxes_3d", "labels_3d", len(classes))
     frames = _strings(pred, "frames", name) if "frames" in pred else None
     if ground_truth is None:
-        return rows_to_dump(classes, det, None, frames=frames)
+        return rows_to_dump(classes, det, None, frames=frames, source=name)
     gt_path = check_file(ground_truth, "ground truth")
     truth = _read_npz(gt_path, GT_KEYS, budget)
     if "classes" in truth and tuple(_strings(truth, "classes", gt_path.name)) != classes:
         raise FieldError("classes", f"{gt_path.name}: classes differ from the predictions' "
                                     f"{list(classes)}")
     gt = _rows(truth, gt_path.name, "gt_bboxes_3d", "gt_labels_3d", len(classes))
-    return rows_to_dump(classes, det, gt, frames=frames)
+    return rows_to_dump(classes, det, gt, frames=frames, source=name)
 
 
 def _read_npz(path: os.PathLike[str], keys: tuple[str, ...], budget: ByteBudget
@@ -83,7 +83,7 @@ def _read_npz(path: os.PathLike[str], keys: tuple[str, ...], budget: ByteBudget
         with zipfile.ZipFile(path) as archive:
             inflated = sum(max(info.file_size, _declared_bytes(archive, info))
                            for info in archive.infolist())
-    except (zipfile.BadZipFile, OSError, EOFError, ValueError):
+    except Exception:  # noqa: BLE001  a corrupt zip fails in zlib, zipfile or numpy, any way
         raise FieldError("npz", f"{name}: not an NPZ archive (a zip of .npy arrays, as "
                                 "numpy.savez writes)") from None
     if inflated > budget.left:
@@ -99,7 +99,7 @@ def _read_npz(path: os.PathLike[str], keys: tuple[str, ...], budget: ByteBudget
             return {k: npz[k] for k in npz.files}
     except FieldError:
         raise
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, MemoryError) as exc:
+    except Exception as exc:  # noqa: BLE001  as above: corrupt members fail in many ways
         raise FieldError("npz", f"{name}: an array cannot be read: {str(exc)[:160]}") from None
 
 

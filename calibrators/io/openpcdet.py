@@ -55,7 +55,7 @@ def load_openpcdet(path: str | os.PathLike[str],
     det, det_bbox, det_names = _predictions(entries, res.name, classes, index)
     frames = np.array([_token(e, f"{res.name}[{i}]") for i, e in enumerate(entries)], dtype=str)
     if ground_truth is None:
-        return rows_to_dump(classes, det, None, frames=frames)
+        return rows_to_dump(classes, det, None, frames=frames, source=res.name)
     info = check_file(ground_truth, "infos")
     infos = _entries(load_restricted(budget.read(info, info.name), info.name), info.name)
     gt, neighbour, dc = _truth(infos, info.name, set(frames.tolist()), index)
@@ -65,7 +65,8 @@ def load_openpcdet(path: str | os.PathLike[str],
     real = ~neighbour
     return rows_to_dump(classes, Rows(det.frames[keep], det.labels[keep], det.boxes[keep],
                                       scores=det.scores[keep]),  # type: ignore[index]
-                        Rows(gt.frames[real], gt.labels[real], gt.boxes[real]), frames=frames)
+                        Rows(gt.frames[real], gt.labels[real], gt.boxes[real]), frames=frames,
+                        source=res.name)
 
 
 def _entries(content: object, name: str) -> list[dict]:

@@ -74,9 +74,11 @@ def score_logits(scores: np.ndarray, labels: np.ndarray, n_classes: int,
 
 def rows_to_dump(classes: tuple[str, ...], det: Rows, gt: Rows | None = None, *,
                  score_is_logit: bool = False, score_mode: str = "sigmoid",
-                 frames: np.ndarray | None = None) -> Dump:
+                 frames: np.ndarray | None = None, source: str = "input") -> Dump:
     """A `Dump` (L = 1) of detections `det` and ground truth `gt` (None: none) over the sorted
     frame tokens (those of the rows and `frames`, the input's frames that may have neither).
+    A value the `Dump` refuses (e.g. a box that overflowed to Inf) is a FieldError naming
+    `source`, the file read.
 
     Logits: `det.logits` when given (`score_mode` says how to read them), else built from
     `det.scores` by `score_logits` in sigmoid mode. The label is kept as `det_label` when it
@@ -98,12 +100,15 @@ def rows_to_dump(classes: tuple[str, ...], det: Rows, gt: Rows | None = None, *,
         logits = np.asarray(det.logits, dtype=np.float64)
         argmax = np.argmax(logits[:, :len(classes)], axis=1) if len(logits) else labels
         det_label = None if np.array_equal(argmax, labels) else labels
-    return Dump(classes=classes, score_mode=score_mode, frame_ids=tokens, det_frame=det_frame,
-                det_logits=logits.reshape(len(labels), 1, -1) if len(labels) else
-                np.zeros((0, 1, len(classes) + (score_mode == "softmax"))),
-                det_boxes=np.asarray(det.boxes, dtype=np.float64).reshape(-1, 1, 9),
-                det_label=det_label, gt_frame=gt_frame, gt_labels=gt.labels,
-                gt_boxes=np.asarray(gt.boxes, dtype=np.float64).reshape(-1, 9))
+    try:
+        return Dump(classes=classes, score_mode=score_mode, frame_ids=tokens,
+                    det_frame=det_frame, det_logits=logits.reshape(len(labels), 1, -1)
+                    if len(labels) else np.zeros((0, 1, len(classes) + (score_mode == "softmax"))),
+                    det_boxes=np.asarray(det.boxes, dtype=np.float64).reshape(-1, 1, 9),
+                    det_label=det_label, gt_frame=gt_frame, gt_labels=gt.labels,
+                    gt_boxes=np.asarray(gt.boxes, dtype=np.float64).reshape(-1, 9))
+    except ValueError as exc:
+        raise FieldError(getattr(exc, "field", "dump"), f"{source}: {exc}") from None
 
 
 def class_index(classes: tuple[str, ...], class_map: dict[str, str] | None

@@ -3,10 +3,13 @@
 from __future__ import annotations
 
 import io
+from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
 from calibrators.dump import Dump
+from calibrators.exceptions import FieldError
 from calibrators.io import load_dump, save_dump
 
 
@@ -40,3 +43,17 @@ def npz_round_trip(dump: Dump) -> Dump:
     save_dump(buf, dump)
     buf.seek(0)
     return load_dump(buf)
+
+
+def assert_reads_or_refuses(path: Path, data: bytes, cut: int, flip: int,
+                            load: Callable[[Path], Dump]) -> None:
+    """`data` cut after `cut` bytes with the byte at `flip` changed, written to `path`: the
+    reader gives a Dump or a FieldError naming the file, never another exception."""
+    damaged = bytearray(data[:cut % (len(data) + 1)])
+    if damaged:
+        damaged[flip % len(damaged)] ^= 0x5A
+    path.write_bytes(bytes(damaged))
+    try:
+        assert isinstance(load(path), Dump)
+    except FieldError as exc:
+        assert path.name in str(exc), str(exc)

@@ -19,7 +19,11 @@ from hypothesis import strategies as st
 from calibrators.exceptions import FieldError
 from calibrators.io import load_dump
 from calibrators.io.argoverse2 import AV2_CATEGORIES, load_av2
-from tests.calibrators.reader_checks import assert_same_content, npz_round_trip
+from tests.calibrators.reader_checks import (
+    assert_reads_or_refuses,
+    assert_same_content,
+    npz_round_trip,
+)
 
 LOG = "0c6e62d7-bdfa-3061-8d3d-03b13aa21f68"
 
@@ -138,3 +142,11 @@ def test_order_does_not_change_content(tmp_path_factory, order):
     a = load_av2(write(base, "a.feather", table(rows)))
     b = load_av2(write(base, "b.feather", table([rows[k] for k in order])))
     assert_same_content(a, b)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10**6), st.integers(0, 10**6))
+def test_damaged_file_is_read_or_refused(tmp_path_factory, cut, flip):
+    folder = tmp_path_factory.mktemp("dmg")
+    data = write(folder, "good.feather", table(DETS)).read_bytes()
+    assert_reads_or_refuses(folder / "d.feather", data, cut, flip, load_av2)

@@ -17,7 +17,11 @@ from hypothesis import strategies as st
 from calibrators.exceptions import FieldError
 from calibrators.io import load_dump
 from calibrators.io.kitti import load_kitti
-from tests.calibrators.reader_checks import assert_same_content, npz_round_trip
+from tests.calibrators.reader_checks import (
+    assert_reads_or_refuses,
+    assert_same_content,
+    npz_round_trip,
+)
 
 # Car: bbox 100..200 x 150..250, h 1.5 w 1.6 l 3.9 at (1, 1.65, 10), ry 0, score 0.93.
 CAR = "Car 0.00 0 -1.57 100.0 150.0 200.0 250.0 1.50 1.60 3.90 1.00 1.65 10.00 0.00"
@@ -240,3 +244,11 @@ def test_order_and_interleaving_do_not_change_content(tmp_path_factory, picks, r
     other = load_kitti([write(base / "b" / p, files) for p, files in rnd.sample(
         sorted(parts.items()), 2)], gt)
     assert_same_content(other, ref)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10**6), st.integers(0, 10**6))
+def test_damaged_file_is_read_or_refused(tmp_path_factory, cut, flip):
+    folder = tmp_path_factory.mktemp("dmg")
+    data = "".join(line + "\n" for line in (CAR + " 0.9", PED + " 0.4", DONTCARE + " 0.1"))
+    assert_reads_or_refuses(folder / "000000.txt", data.encode(), cut, flip, load_kitti)

@@ -18,7 +18,11 @@ from hypothesis import strategies as st
 from calibrators.exceptions import FieldError
 from calibrators.io import load_dump
 from calibrators.io.mmdet3d import load_mmdet3d
-from tests.calibrators.reader_checks import assert_same_content, npz_round_trip
+from tests.calibrators.reader_checks import (
+    assert_reads_or_refuses,
+    assert_same_content,
+    npz_round_trip,
+)
 
 CLASSES = np.array(["car", "pedestrian", "cyclist"])
 
@@ -141,3 +145,12 @@ def test_order_does_not_change_content(tmp_path_factory, order):
     shuffled = {k: (v if k == "classes" else v[list(order)]) for k, v in arrays.items()}
     assert_same_content(load_mmdet3d(save(base, "a.npz", shuffled)),
                         load_mmdet3d(save(base, "b.npz", arrays)))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10**6), st.integers(0, 10**6))
+def test_damaged_file_is_read_or_refused(tmp_path_factory, cut, flip):
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **predictions())
+    path = tmp_path_factory.mktemp("dmg") / "pred.npz"
+    assert_reads_or_refuses(path, buf.getvalue(), cut, flip, load_mmdet3d)

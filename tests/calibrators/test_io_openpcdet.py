@@ -23,7 +23,11 @@ from calibrators.exceptions import FieldError
 from calibrators.io import load_dump
 from calibrators.io.openpcdet import load_openpcdet
 from calibrators.io.pickle_safe import load_restricted
-from tests.calibrators.reader_checks import assert_same_content, npz_round_trip
+from tests.calibrators.reader_checks import (
+    assert_reads_or_refuses,
+    assert_same_content,
+    npz_round_trip,
+)
 
 NUSC = ("car", "truck", "pedestrian")
 KITTI = ("Car", "Pedestrian", "Cyclist")
@@ -224,3 +228,11 @@ def test_order_and_frame_splits_do_not_change_content(tmp_path_factory, order, s
     a = load_openpcdet(dump_pickle(base, "a.pkl", ref), classes=NUSC)
     b = load_openpcdet(dump_pickle(base, "b.pkl", parts), classes=NUSC)
     assert_same_content(a, b)
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 10**6), st.integers(0, 10**6))
+def test_damaged_file_is_read_or_refused(tmp_path_factory, cut, flip):
+    path = tmp_path_factory.mktemp("dmg") / "result.pkl"
+    assert_reads_or_refuses(path, pickle.dumps(nusc_result()), cut, flip,
+                            lambda p: load_openpcdet(p, classes=NUSC))
