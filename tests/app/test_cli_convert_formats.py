@@ -70,3 +70,32 @@ def test_a_malformed_file_is_an_error_naming_file_and_line(tmp_path, monkeypatch
     assert "det/000000.txt line 1: 13 fields" in err and "Traceback" not in err
     assert main(["convert", "det", "out.npz", "--from", "yolo"]) == 2
     assert "format must be one of" in capsys.readouterr().err
+
+
+def per_box(path):
+    """Calibrated score of every box of a results JSON, keyed by frame, centre and class."""
+    results = json.loads(path.read_text())["results"]
+    return {(token, tuple(np.round(box["translation"], 6)), box["detection_name"]):
+            box["detection_score"] for token, boxes in results.items() for box in boxes}
+
+
+def test_per_class_files_calibrate_every_box_as_one_folder(tmp_path, monkeypatch):
+    """Files per class interleave the frames of the dump; each box still gets its own
+    calibrated score."""
+    monkeypatch.chdir(tmp_path)
+    kitti_files(tmp_path, frames=30, seed=4)
+    for name in ("Car", "Pedestrian", "Cyclist"):
+        (tmp_path / "per_class" / name).mkdir(parents=True)
+        for path in sorted((tmp_path / "det").glob("*.txt")):
+            lines = [line for line in path.read_text().splitlines() if line.startswith(name)]
+            (tmp_path / "per_class" / name / path.name).write_text(
+                "".join(line + "\n" for line in lines))
+    assert main(["convert", "det", "a.npz", "--from", "kitti", "--gt", "gt"]) == 0
+    assert main(["convert", "per_class", "b.npz", "--from", "kitti", "--gt", "gt"]) == 0
+    assert not np.all(np.diff(load_dump("b.npz").det_frame) >= 0)  # frames interleaved
+    assert main(["fit", "a.npz", "--out", "profile.json", "--quiet"]) == 0
+    for name in ("a", "b"):
+        assert main(["calibrate", f"{name}.npz", "--profile", "profile.json",
+                     "--out", f"{name}.json"]) == 0
+    a, b = per_box(tmp_path / "a.json"), per_box(tmp_path / "b.json")
+    assert len(a) == 210 and a == b
