@@ -34,6 +34,10 @@ class Settings(BaseSettings):
     max_fit_detections: int = Field(100_000, gt=0, description="Detections (or ground-truth "
                                     "boxes) of one uploaded fit dump, and of each part of a "
                                     "dataset fit in place (413 / 422 above).")
+    max_json_dump_bytes: int = Field(32 * 2**20, gt=0, description="A nuScenes results and "
+                                     "ground-truth JSON pair uploaded to POST /v1/fit, both "
+                                     "files together (JSON takes ~6x its size to parse); 413 "
+                                     "above.")
     max_feedback_detections: int = Field(100_000, gt=0, description="Detections (or ground-"
                                          "truth boxes) of one feedback request (413 above).")
     max_detections: int = Field(20_000, gt=0, description="Detections one calibrate or detect "

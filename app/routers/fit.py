@@ -80,6 +80,7 @@ def fit(
         loaded = load_upload(lambda: load_dump(store.dump_path(stored.sha256),
                                                max_bytes=settings.max_dump_bytes), "dump")
     else:
+        _check_json_pair(results, gt, settings.max_json_dump_bytes)  # type: ignore[arg-type]
         stored = store.put_dump(results.file, "nuscenes-results")  # type: ignore[union-attr]
         gt_sha = store.put_dump(gt.file, "nuscenes-gt").sha256  # type: ignore[union-attr]
         loaded = load_upload(lambda: load_nuscenes(store.dump_path(stored.sha256),
@@ -103,6 +104,18 @@ def fit(
                        dump_sha256=stored.sha256, name=profile_name)
     return JSONResponse(body.model_dump(), status_code=status.HTTP_202_ACCEPTED,
                         headers={"Location": body.status_url})
+
+
+def _check_json_pair(results: UploadFile, gt: UploadFile, limit: int) -> None:
+    """A 413 at `results` when the nuScenes pair is larger than `DETCAL_MAX_JSON_DUMP_BYTES`
+    together (what parsing it would take in memory), before either is parsed."""
+    sizes = [f.size if f.size is not None else f.file.seek(0, 2) for f in (results, gt)]
+    for f in (results, gt):
+        f.file.seek(0)
+    if sum(sizes) > limit:
+        raise RequestError(["body", "results"], f"the nuScenes results and ground truth weigh "
+                           f"{sum(sizes)} bytes together, more than the limit of {limit} bytes "
+                           f"per request (DETCAL_MAX_JSON_DUMP_BYTES)", status=413)
 
 
 def _dataset(store: Store, root: Path | None, name: str, options: FitOptions,

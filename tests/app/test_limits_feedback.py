@@ -105,3 +105,26 @@ def test_frames_without_ground_truth_are_still_evidence(client, labelled):
     r = client.post(FB, headers=ADMIN, json={"frames": frames})
     assert r.status_code == 200, r.text
     assert r.json()["tp"] == 0 and np.isfinite(r.json()["frames_total"])
+
+
+def test_a_nuscenes_pair_over_the_json_limit_is_413(seeded: Settings):
+    from tests.calibrators.test_io_nuscenes import devkit_box
+
+    box = devkit_box("a", "car", (1.0, 1.0, 0.0), num_pts=3)
+    results = ('{"meta": {}, "results": {"a": [' + ", ".join([json_box(box)] * 400) + "]}}"
+               ).encode()
+    gt = b'{"meta": {}, "results": {"a": []}}'
+    small = seeded.model_copy(update={"max_json_dump_bytes": len(results)})
+    with TestClient(create_app(small)) as client:
+        r = client.post("/v1/fit", headers=ADMIN, files={"results": ("r.json", results),
+                                                         "gt": ("g.json", gt)})
+        assert r.status_code == 413, r.text
+        assert r.json()["detail"][0]["loc"] == ["body", "results"]
+        assert "DETCAL_MAX_JSON_DUMP_BYTES" in r.text
+        assert client.get("/v1/jobs", headers=ADMIN).json() == []
+
+
+def json_box(box: dict) -> str:
+    import json
+
+    return json.dumps(box)
