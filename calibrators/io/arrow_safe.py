@@ -186,8 +186,9 @@ def _with_identity_copied(batches: list[pa.RecordBatch], schema: pa.Schema) -> p
 
 def _check_identity(name: str, arr: pa.Array, first_row: int) -> None:
     """FieldError(name, row) for a string of identity column `arr` (a validated batch whose
-    first row is request row `first_row`) over MAX_ID_BYTES; the row is given for a column
-    of plain strings."""
+    first row is request row `first_row`) over MAX_ID_BYTES, the row given for a column of
+    plain strings; FieldError(name) for a column whose buffers take more than MAX_ID_BYTES
+    (plus offsets and validity) per row (lists: an echo must not amplify the body)."""
     for flat in _strings(arr):
         if not len(flat):
             continue
@@ -199,6 +200,10 @@ def _check_identity(name: str, arr: pa.Array, first_row: int) -> None:
             raise FieldError(name, f"{name} strings hold at most {MAX_ID_BYTES} bytes; got "
                                    f"{longest}{'' if row is None else f' at row {row}'}",
                              row=row)
+    size = arr.nbytes   # the bytes its rows use
+    if len(arr) and size > (MAX_ID_BYTES + 16) * len(arr):
+        raise FieldError(name, f"{name} takes {size} bytes for {len(arr)} rows; its values "
+                               f"hold at most {MAX_ID_BYTES} bytes each")
 
 
 def _strings(arr: pa.Array) -> list[pa.Array]:

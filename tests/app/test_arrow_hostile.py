@@ -72,6 +72,16 @@ def test_frame_id_is_capped_and_echoed_from_a_copy(client, dump_given):
             assert buf is None or not (body.address <= buf.address < body.address + len(data))
 
 
+def test_an_identity_list_may_not_amplify_the_echo(client, dump_given):
+    batch = request_batch(dump_given, 4)
+    i = batch.schema.get_field_index("id")
+    for width, status in ((30, 200), (40, 422)):   # 240 and 320 bytes of int64 per row
+        ids = pa.FixedSizeListArray.from_arrays(pa.array(np.arange(4 * width)), width)
+        r = _post(client, stream([batch.set_column(i, "id", ids)]))
+        assert r.status_code == status, r.text
+    assert r.json()["detail"][0]["loc"] == ["body", "id"]
+
+
 @pytest.mark.parametrize(("column", "values"), [
     ("id", pa.array([True, False, True, False])),
     ("id", pa.array([b"x"] * 4, pa.binary())),
