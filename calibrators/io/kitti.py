@@ -28,7 +28,14 @@ import numpy as np
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.io.kitti_calib import CAMERA_AXES, camera_boxes, parse_calib
-from calibrators.io.kitti_ignore import DONTCARE_OVERLAP, NEIGHBOURS, ignored_detections
+from calibrators.io.kitti_ignore import (
+    DIFFICULTY,
+    DONTCARE_OVERLAP,
+    NEIGHBOURS,
+    ignored_detections,
+    too_hard,
+    too_small,
+)
 from calibrators.io.kitti_text import LabelTable, concat_tables, parse_label_file
 from calibrators.io.reader_files import ByteBudget, check_file
 from calibrators.io.reader_rows import Rows, class_list, rows_to_dump
@@ -49,7 +56,8 @@ PathArg = str | os.PathLike[str]
 def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | None = None,
                *, calib: PathArg | None = None, classes: Sequence[str] = KITTI_CLASSES,
                class_map: Mapping[str, str] | None = None, score: str = "probability",
-               threshold: float = 2.0, max_bytes: int | None = None) -> Dump:
+               threshold: float = 2.0, difficulty: str | None = None,
+               max_bytes: int | None = None) -> Dump:
     """Read KITTI label files with scores (and, optionally, KITTI ground truth) into a `Dump`.
 
     `classes` is the dump's class list (default Car, Pedestrian, Cyclist); `class_map` maps
@@ -58,12 +66,17 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
     refused. `score`: `"probability"` (checked in [0, 1]) or `"logit"`. `calib`: a calib file
     for every frame, or a folder with one per file stem (`calib/000123.txt`, tracking
     `calib/0004.txt`); without it boxes stay in the camera frame (axes renamed). `threshold`
-    (m) is the matching distance of the ignore rules. At most `max_bytes` (default 2 GiB) are
-    read in all. Errors are `FieldError`s naming the file, the line and the field.
+    (m) is the matching distance of the ignore rules; `difficulty` (`easy`, `moderate`, `hard`,
+    default none) adds KITTI's difficulty rules to them (`kitti_ignore`). At most `max_bytes`
+    (default 2 GiB) are read in all. Errors are `FieldError`s naming the file, the line and
+    the field.
     """
     classes, index = class_list(classes, class_map)
     if score not in SCORE_KINDS:
         raise FieldError("score", f"score must be one of {list(SCORE_KINDS)}, got {score!r}")
+    if difficulty is not None and difficulty not in DIFFICULTY:
+        raise FieldError("difficulty", f"difficulty must be one of {list(DIFFICULTY)} or None, "
+                                       f"got {difficulty!r}")
     budget = ByteBudget(max_bytes)
     det_files = _label_files(detections, "detections")
     det = concat_tables([_read(p, name, budget) for p, name in det_files], "detections")
@@ -84,8 +97,10 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
         raise FieldError("ground_truth", f"ground truth is {gt.layout} labels but the "
                                          f"detections are {det.layout} labels")
     gt_labels = _labels(gt, index)
-    keep = _ignore(det, labels, gt, gt_labels, index, to_frame, rows, threshold)
-    truth = np.flatnonzero(gt_labels >= 0)
+    hard = too_hard(gt.values[:, 3:7], gt.values[:, 1], gt.values[:, 0], difficulty)
+    keep = _ignore(det, labels, gt, gt_labels, hard, index, to_frame, rows, threshold)
+    keep &= ~too_small(det.values[labels >= 0, 3:7], difficulty)
+    truth = np.flatnonzero((gt_labels >= 0) & ~hard)
     return rows_to_dump(classes, _select(rows, keep),
                         Rows(gt.tokens()[truth], gt_labels[truth], _boxes(gt, truth, to_frame)),
                         score_is_logit=score == "logit",
@@ -210,9 +225,10 @@ def _detection_rows(det: LabelTable, labels: np.ndarray, to_frame: Mapping[str, 
 
 
 def _ignore(det: LabelTable, labels: np.ndarray, gt: LabelTable, gt_labels: np.ndarray,
-            index: Mapping[str, int], to_frame: Mapping[str, np.ndarray], rows: Rows,
-            threshold: float) -> np.ndarray:
-    """`[N]` mask of the detection `rows` KITTI's evaluation counts (kitti_ignore)."""
+            hard: np.ndarray, index: Mapping[str, int], to_frame: Mapping[str, np.ndarray],
+            rows: Rows, threshold: float) -> np.ndarray:
+    """`[N]` mask of the detection `rows` KITTI's evaluation counts (kitti_ignore); `hard`
+    `[M]` marks ground truth of the classes ignored at the difficulty level."""
     kept = np.flatnonzero(labels >= 0)
     neighbour = np.full(len(gt_labels), -1, dtype=np.int64)
     for target, name in NEIGHBOURS.items():
@@ -230,7 +246,7 @@ def _ignore(det: LabelTable, labels: np.ndarray, gt: LabelTable, gt_labels: np.n
         det_min_overlap=np.array([DONTCARE_OVERLAP.get(t, 0.5) for t in det.types[kept]]),
         gt_frame=np.array([frame_of[t] for t in gt_tokens[use].tolist()], dtype=np.int64),
         gt_labels=np.where(gt_labels[use] >= 0, gt_labels[use], neighbour[use]),
-        gt_xy=_boxes(gt, use, to_frame)[:, :2], gt_ignored=neighbour[use] >= 0,
+        gt_xy=_boxes(gt, use, to_frame)[:, :2], gt_ignored=(neighbour[use] >= 0) | hard[use],
         dc_frame=np.array([frame_of[t] for t in gt_tokens[dc].tolist()], dtype=np.int64),
         dc_bbox=gt.values[dc, 3:7], threshold=threshold)
     return ~ignored

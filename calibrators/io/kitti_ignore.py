@@ -10,6 +10,12 @@ at a time and ignores, rather than counts:
   its intersection with the region over its own area (the devkit's `boxoverlap(det, dc, 0)`)
   above the class's minimum overlap (0.7 for Car, 0.5 otherwise).
 
+With a difficulty level (`easy`, `moderate`, `hard`), the devkit's `cleanData` also ignores
+ground truth of the class that is too small, occluded or truncated for the level (2D height
+<= 40 / 25 / 25 px, occlusion > 0 / 1 / 2, truncation > 0.15 / 0.30 / 0.50): a detection on
+it counts for nothing and it is no miss; and detections lower than the level's minimum
+height. Without one, every box counts.
+
 Ground truth of other classes (`Truck`, `Tram`, `Misc`, ... when not among the classes) is
 not ground truth and no ignore region: a detection on it is a false positive, as in KITTI.
 
@@ -28,6 +34,26 @@ from calibrators.matching import match
 NEIGHBOURS = {"Car": "Van", "Pedestrian": "Person_sitting"}
 #: Minimum DontCare overlap per KITTI class (the devkit's MIN_OVERLAP); others: 0.5.
 DONTCARE_OVERLAP = {"Car": 0.7}
+#: KITTI's difficulty levels: (MIN_HEIGHT px, MAX_OCCLUSION, MAX_TRUNCATION) of the devkit.
+DIFFICULTY = {"easy": (40.0, 0, 0.15), "moderate": (25.0, 1, 0.30), "hard": (25.0, 2, 0.50)}
+
+
+def too_hard(bbox: np.ndarray, occluded: np.ndarray, truncated: np.ndarray,
+             level: str | None) -> np.ndarray:
+    """`[M]` bool: ground truth KITTI ignores at difficulty `level` (None: none), from its 2D
+    boxes `[M, 4]` (left top right bottom), occlusion `[M]` and truncation `[M]`."""
+    if level is None:
+        return np.zeros(len(bbox), dtype=bool)
+    min_height, max_occlusion, max_truncation = DIFFICULTY[level]
+    height = np.abs(bbox[:, 3] - bbox[:, 1])
+    return (occluded > max_occlusion) | (truncated > max_truncation) | (height <= min_height)
+
+
+def too_small(bbox: np.ndarray, level: str | None) -> np.ndarray:
+    """`[N]` bool: detections below the minimum 2D height of `level` (None: none)."""
+    if level is None:
+        return np.zeros(len(bbox), dtype=bool)
+    return np.abs(bbox[:, 3] - bbox[:, 1]) < DIFFICULTY[level][0]
 
 
 def ignored_detections(det_frame: np.ndarray, det_labels: np.ndarray, det_scores: np.ndarray,

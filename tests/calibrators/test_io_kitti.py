@@ -252,3 +252,20 @@ def test_damaged_file_is_read_or_refused(tmp_path_factory, cut, flip):
     folder = tmp_path_factory.mktemp("dmg")
     data = "".join(line + "\n" for line in (CAR + " 0.9", PED + " 0.4", DONTCARE + " 0.1"))
     assert_reads_or_refuses(folder / "000000.txt", data.encode(), cut, flip, load_kitti)
+
+
+def test_difficulty_levels_as_kitti(tmp_path):
+    # Car ground truth 100 px high, fully visible; a second one 30 px high (moderate, not easy)
+    # and a third one largely occluded (hard only).
+    low = "Car 0.00 0 0 300.0 150.0 360.0 180.0 1.5 1.6 3.9 -5.00 1.65 30.00 0.00"
+    hidden = "Car 0.00 2 0 400.0 150.0 480.0 250.0 1.5 1.6 3.9 6.00 1.65 25.00 0.00"
+    gt = write(tmp_path / "gt", {"000000.txt": [CAR, low, hidden]})
+    det = write(tmp_path / "det", {"000000.txt": [CAR + " 0.9", low + " 0.8", hidden + " 0.7"]})
+    counts = {level: (load_kitti(det, gt, difficulty=level).n_detections,
+                      len(load_kitti(det, gt, difficulty=level).gt_labels))
+              for level in (None, "easy", "moderate", "hard")}
+    # easy: the low box is too small (its detection too), the hidden one too occluded (its
+    # detection on ignored ground truth): one of each stays
+    assert counts == {None: (3, 3), "easy": (1, 1), "moderate": (2, 2), "hard": (3, 3)}
+    with pytest.raises(FieldError, match="difficulty must be one of"):
+        load_kitti(det, gt, difficulty="medium")
