@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Mapping, Sequence
+from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
@@ -52,8 +53,10 @@ def load_av2(path: str | os.PathLike[str], ground_truth: str | os.PathLike[str] 
 
     A detection's category must be one of `classes` (or `class_map`); annotations of other
     categories, and with `num_interior_pts == 0`, are not read. Only the annotations of the
-    detections' logs are read. At most `max_bytes` (default 2 GiB) are read and decoded.
-    Errors are FieldErrors naming the file, the column and the row.
+    detections' logs are read: `ground_truth` is one annotations file (several logs'
+    concatenated) or a split folder holding `<log_id>/annotations.feather`. At most
+    `max_bytes` (default 2 GiB) are read and decoded. Errors are FieldErrors naming the file,
+    the column and the row.
     """
     classes, index = class_list(classes, class_map)
     budget = ByteBudget(max_bytes)
@@ -63,19 +66,42 @@ def load_av2(path: str | os.PathLike[str], ground_truth: str | os.PathLike[str] 
     frames = _tokens(table)
     if ground_truth is None:
         return rows_to_dump(classes, det, None, frames=frames, source=det_path.name)
-    gt_path = check_file(ground_truth, "annotations")
-    gt_table = _read(gt_path, budget, scored=False)
-    logs = set(table.column("log_id").to_pylist())
-    gt_table = gt_table.filter(pa.array([v in logs for v in
-                                         gt_table.column("log_id").to_pylist()]))
-    gt = _rows(gt_table, gt_path.name, index, detections=False)
-    return rows_to_dump(classes, det, gt, frames=np.concatenate([frames, _tokens(gt_table)]),
+    logs = sorted(set(table.column("log_id").to_pylist()))
+    gt, gt_frames = _truth(check_file(ground_truth, "annotations"), logs, budget, index)
+    return rows_to_dump(classes, det, gt, frames=np.concatenate([frames, gt_frames]),
                         source=det_path.name)
 
 
-def _read(path: os.PathLike[str], budget: ByteBudget, scored: bool) -> pa.Table:
-    """The file's columns, checked: required columns present, of the right types, no nulls."""
-    name = path.name  # type: ignore[attr-defined]
+def _truth(root: Path, logs: list[str], budget: ByteBudget, index: Mapping[str, int]
+           ) -> tuple[Rows, np.ndarray]:
+    """Ground-truth rows of the detections' `logs` and every frame token they name, from one
+    annotations file or a split folder of `<log_id>/annotations.feather` (AV2's layout)."""
+    if root.is_dir():
+        files = [(root / log / "annotations.feather", f"{root.name}/{log}/annotations.feather")
+                 for log in logs]
+        for path, name in files:
+            if not path.is_file():
+                raise FieldError("annotations", f"{name} is missing (the detections have log "
+                                                f"{path.parent.name!r})")
+    else:
+        files = [(root, root.name)]
+    wanted = set(logs)
+    parts, frames = [], []
+    for path, name in files:
+        tab = _read(path, budget, scored=False, name=name)
+        tab = tab.filter(pa.array([v in wanted for v in tab.column("log_id").to_pylist()]))
+        parts.append(_rows(tab, name, index, detections=False))
+        frames.append(_tokens(tab))
+    return Rows(np.concatenate([r.frames for r in parts]),
+                np.concatenate([r.labels for r in parts]),
+                np.concatenate([r.boxes for r in parts])), np.concatenate(frames)
+
+
+def _read(path: Path, budget: ByteBudget, scored: bool, name: str | None = None
+          ) -> pa.Table:
+    """The file's columns, checked: required columns present, of the right types, no nulls
+    (`name`, default the file's, in messages)."""
+    name = path.name if name is None else name
     data = budget.read(path, name)
     if not data.startswith(_MAGIC) or not data.endswith(_MAGIC):
         raise FieldError("feather", f"{name}: not a Feather v2 (Arrow IPC) file")

@@ -89,6 +89,21 @@ def test_annotations_as_ground_truth(tmp_path):
     assert_same_content(load_dump(det, format="av2", ground_truth=ann), dump)
 
 
+def test_annotations_of_a_split_folder(tmp_path):
+    gt = [(LOG, 315968867659956000, "REGULAR_VEHICLE", 12.7, -3.1, 0.8, 4.5, 1.9, 1.5, 2.1, 120),
+          ("log-b", 315968867759956000, "BOLLARD", -8.0, 1.0, 0.5, 0.3, 0.3, 1.0, 0.0, 9)]
+    for log in (LOG, "log-b", "log-c"):
+        (tmp_path / "val" / log).mkdir(parents=True)
+        write(tmp_path / "val" / log, "annotations.feather",
+              table([r for r in gt if r[0] == log] or gt[:1], scored=False))
+    det = write(tmp_path, "detections.feather", table(DETS))
+    dump = load_av2(det, tmp_path / "val")
+    assert [AV2_CATEGORIES[k] for k in dump.gt_labels] == ["REGULAR_VEHICLE", "BOLLARD"]
+    write(tmp_path, "d2.feather", table(DETS + [("log-z", 1, "DOG", 1, 1, 1, 1, 1, 1, 0, 0.5)]))
+    with pytest.raises(FieldError, match=r"val/log-z/annotations.feather is missing"):
+        load_av2(tmp_path / "d2.feather", tmp_path / "val")
+
+
 def test_explicit_classes_and_map(tmp_path):
     det = write(tmp_path, "d.feather", table(DETS))
     dump = load_av2(det, classes=("car", "pedestrian", "barrier"),
