@@ -83,7 +83,9 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
     if det.scores is None and len(det.types):
         raise FieldError("score", f"{det.where[0]}: detections need a score column (16 fields "
                                   "for object labels, 18 for tracking)")
-    to_frame = _calib_maps(calib, sorted({p.stem for p, _ in det_files}), budget)
+    gt_files = [] if ground_truth is None else \
+        _truth_files(ground_truth, [p for p, _ in det_files])
+    to_frame = _calib_maps(calib, sorted({p.stem for p, _ in det_files + gt_files}), budget)
     labels = _labels(det, index)
     rows = _detection_rows(det, labels, to_frame, score)
     frames = det.tokens() if det.layout == "tracking" else \
@@ -91,8 +93,7 @@ def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | 
     if ground_truth is None:
         return rows_to_dump(classes, rows, None, score_is_logit=score == "logit",
                             frames=frames, source=_source_name(detections))
-    gt = concat_tables([_read(p, name, budget) for p, name in
-                        _truth_files(ground_truth, [p for p, _ in det_files])], "ground truth")
+    gt = concat_tables([_read(p, name, budget) for p, name in gt_files], "ground truth")
     if len(gt.types) and len(det.types) and gt.layout != det.layout:
         raise FieldError("ground_truth", f"ground truth is {gt.layout} labels but the "
                                          f"detections are {det.layout} labels")

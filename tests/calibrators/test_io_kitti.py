@@ -103,6 +103,16 @@ def test_one_folder_per_class_concatenated(tmp_path):
     assert_same_content(both, dump)
 
 
+def test_single_files_of_other_names(tmp_path):
+    det = write(tmp_path / "det", {"000004.txt": [CAR + " 0.9"]})
+    gt = write(tmp_path / "gt", {"labels.txt": [CAR]})
+    dump = load_kitti(det / "000004.txt", gt / "labels.txt")
+    assert dump.frame_ids.tolist() == ["000004", "labels"]  # a file is a frame
+    calib = write(tmp_path / "calib", {"000004.txt": CALIB.splitlines()})
+    with pytest.raises(FieldError, match=r"calib/labels.txt is missing"):
+        load_kitti(det, gt / "labels.txt", calib=calib)
+
+
 def test_ground_truth_only_for_the_detections_frames(tmp_path):
     det = write(tmp_path / "det", {"000001.txt": [CAR + " 0.9"]})
     gt = write(tmp_path / "gt", {"000000.txt": [PED], "000001.txt": [CAR, "Truck" + CAR[3:]]})
