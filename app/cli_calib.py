@@ -47,7 +47,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "convert", help="write a validation dump as a Parquet dataset",
         description="Write an NPZ dump (or a nuScenes results JSON with --nuscenes-gt) as a "
                     "Parquet dataset folder (docs/formats.md): detections and ground truth "
-                    "in parts of whole frames, for streamed and Dask fits.")
+                    "in parts of whole frames, for streamed and Dask fits. With --from, read "
+                    "a detector's own files (KITTI labels, OpenPCDet result.pkl, "
+                    "MMDetection3D arrays, Argoverse 2 feather) into a dump: OUT_DIR ending "
+                    "in .npz writes it as a validation dump.")
     _add_input(conv)
     conv.add_argument("out_dir", metavar="OUT_DIR", help="dataset folder to create")
     conv.add_argument("--rows-per-part", type=int, default=None,
