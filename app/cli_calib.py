@@ -316,16 +316,11 @@ def _dump_batches(path: Path, profile: Any) -> list[Any]:
     (frame token, dump row)."""
     from calibrators import check_profile_fits
     from calibrators.detections import Detections
-    from calibrators.io import load_parquet
+    from calibrators.io.npz import load_dump
+    from calibrators.io.parquet import load_parquet
 
-    if path.is_dir():
-        try:
-            dump = load_parquet(str(path))
-        except ValueError as exc:
-            raise CliError(f"{path}: {exc}") from None
-    else:
-        dump, _ = load_input(str(path), None)
-    try:
+    try:   # the library's messages name no file: here do
+        dump = load_parquet(str(path)) if path.is_dir() else load_dump(str(path))
         check_profile_fits(dump, profile)
     except ValueError as exc:
         raise CliError(f"{path}: {exc}") from None

@@ -25,13 +25,16 @@ import numpy as np
 
 from calibrators.detections import Detections, calibrated_records, detections_from_records
 from calibrators.exceptions import FieldError
-from calibrators.io.nuscenes_write import _DEVKIT_META, _box
 from calibrators.vocab import quaternion_yaw
 
 if TYPE_CHECKING:
     from calibrators.serving import CalibratedDetections
 
-__all__ = ["calibrated_document", "detections_from_nuscenes"]
+__all__ = ["DEVKIT_META", "calibrated_document", "detections_from_nuscenes", "devkit_box"]
+
+#: The devkit's `meta` flags of a document written from a dump (detcal knows no sensors).
+DEVKIT_META = {"use_camera": False, "use_lidar": False, "use_radar": False, "use_map": False,
+                "use_external": False}
 
 def detections_from_nuscenes(document: Mapping[str, Any], classes: Sequence[str],
                              score_mode: str, ego: Mapping[str, Sequence[float]] | None = None
@@ -109,7 +112,8 @@ def calibrated_document(calibrated: CalibratedDetections | Sequence[CalibratedDe
         for i, rec in enumerate(calibrated_records(part)):
             if sources is None or sources[i] is None:
                 ego = np.array([*det.ego_xy[i], 0.0])
-                box = _box(np.asarray(rec["box"]), str(rec["frame_id"]), ego, rec["label"], 0.0)
+                box = devkit_box(np.asarray(rec["box"]), str(rec["frame_id"]), ego,
+                                 rec["label"], 0.0)
                 if logits is not None:
                     box["detection_logits"] = logits[i].tolist()
             else:
@@ -122,7 +126,7 @@ def calibrated_document(calibrated: CalibratedDetections | Sequence[CalibratedDe
                 box["detection_id"] = rec["id"]
             tokens.setdefault(str(rec["frame_id"]), []).append((rec["row"], box))
     first = parts[0] if parts else None
-    out_meta = dict(meta) if meta is not None else dict(_DEVKIT_META)
+    out_meta = dict(meta) if meta is not None else dict(DEVKIT_META)
     if first is not None:
         if meta is None:
             out_meta["classes"] = list(first.classes)
@@ -135,3 +139,20 @@ def calibrated_document(calibrated: CalibratedDetections | Sequence[CalibratedDe
         doc["calibration"] = dict(calibration)
     return doc
 
+
+def devkit_box(row: np.ndarray, token: str, ego: np.ndarray, name: str, score: float) -> dict:
+    """A devkit `DetectionBox` of box `row [9]` in frame `token` whose ego position is `ego
+    [3]` (num_pts and attribute unknown: -1 and "")."""
+    yaw = float(row[6])
+    return {
+        "sample_token": str(token),
+        "translation": [float(v) for v in row[:3]],
+        "size": [float(v) for v in row[3:6]],
+        "rotation": [float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2))],
+        "velocity": [float(row[7]), float(row[8])],
+        "ego_translation": [float(v) for v in row[:3] - ego],
+        "num_pts": -1,
+        "detection_name": name,
+        "detection_score": score,
+        "attribute_name": "",
+    }

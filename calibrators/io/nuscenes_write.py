@@ -22,13 +22,11 @@ from calibrators.checks import (
 )
 from calibrators.dump import Dump
 from calibrators.io.atomic import atomic_write
+from calibrators.io.nuscenes_batch import DEVKIT_META, devkit_box
 from calibrators.vocab import BOX_FIELDS
 
 if TYPE_CHECKING:
     pass
-
-_DEVKIT_META = {"use_camera": False, "use_lidar": False, "use_radar": False, "use_map": False,
-                "use_external": False}
 
 
 def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
@@ -58,15 +56,15 @@ def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
     cov = covariances if covariances is not None else dump.det_cov
     ego = (np.zeros((dump.n_frames, 3)) if dump.ego_translation is None
            else dump.ego_translation)
-    meta = {**_DEVKIT_META, "classes": list(dump.classes), "score_mode": dump.score_mode,
+    meta = {**DEVKIT_META, "classes": list(dump.classes), "score_mode": dump.score_mode,
             "cov_dims": list(dims)}
 
     det_out: dict[str, list] = {str(t): [] for t in dump.frame_ids}
     for i in range(dump.n_detections):
         f = int(dump.det_frame[i])
-        box = _box(dump.final_boxes[i], dump.frame_ids[f], ego[f],
-                   dump.classes[dump.det_labels[i]],
-                   float(raw[i] if scores is None else scores[i]))
+        box = devkit_box(dump.final_boxes[i], dump.frame_ids[f], ego[f],
+                         dump.classes[dump.det_labels[i]],
+                         float(raw[i] if scores is None else scores[i]))
         box["detection_logits"] = dump.det_logits[i, -1].tolist()
         if scores is not None:
             box["detection_score_raw"] = float(raw[i])
@@ -80,8 +78,8 @@ def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
     for j in range(len(dump.gt_boxes)):
         f = int(dump.gt_frame[j])
         gt_out[str(dump.frame_ids[f])].append(
-            _box(dump.gt_boxes[j], dump.frame_ids[f], ego[f], dump.classes[dump.gt_labels[j]],
-                 -1.0))
+            devkit_box(dump.gt_boxes[j], dump.frame_ids[f], ego[f],
+                       dump.classes[dump.gt_labels[j]], -1.0))
     _write_json(gt_path, {"meta": meta, "results": gt_out})
 
 
@@ -161,22 +159,6 @@ def _check_cov_array(covariances: np.ndarray, n: int, d: int) -> np.ndarray:
         raise ValueError(f"covariances must have shape [{n}, {d}, {d}] (cov_dims has {d} "
                          f"entries), got {cov.shape}")
     return cov
-
-
-def _box(row: np.ndarray, token: str, ego: np.ndarray, name: str, score: float) -> dict:
-    yaw = float(row[6])
-    return {
-        "sample_token": str(token),
-        "translation": [float(v) for v in row[:3]],
-        "size": [float(v) for v in row[3:6]],
-        "rotation": [float(np.cos(yaw / 2)), 0.0, 0.0, float(np.sin(yaw / 2))],
-        "velocity": [float(row[7]), float(row[8])],
-        "ego_translation": [float(v) for v in row[:3] - ego],
-        "num_pts": -1,
-        "detection_name": name,
-        "detection_score": score,
-        "attribute_name": "",
-    }
 
 
 def _write_json(path: str | os.PathLike[str], content: dict) -> None:
