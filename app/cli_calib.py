@@ -67,6 +67,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                       help="--from kitti: calib file or folder (boxes to the lidar frame)")
     conv.add_argument("--classes", metavar="A,B,...",
                       help="class list, in order (--from openpcdet: the config's CLASS_NAMES)")
+    conv.add_argument("--score", choices=("probability", "logit"),
+                      help="--from kitti: the score column is a probability (default) or a "
+                           "logit (PointRCNN / AB3DMOT detection files)")
+    conv.add_argument("--difficulty", choices=("easy", "moderate", "hard"),
+                      help="--from kitti: KITTI's difficulty rules (default: every box counts)")
     conv.set_defaults(func=run_convert)
 
     ev = subparsers.add_parser(
@@ -214,13 +219,15 @@ def run_convert(args: argparse.Namespace) -> int:
 def _convert_input(args: argparse.Namespace) -> tuple[Any, str]:
     """(Dump, sha256) of `detcal convert`'s DUMP read as `--from` (calibrators.io.load_dump),
     with its `--gt`, `--calib` and `--classes`; plain npz / nuScenes input as `load_input`."""
-    if args.source_format == "npz" and not (args.gt or args.calib or args.classes):
+    if args.source_format == "npz" and not (args.gt or args.calib or args.classes
+                                            or args.score or args.difficulty):
         return load_input(args.dump, args.nuscenes_gt)
     from calibrators.io.formats import inputs_sha256, load_dump
 
     options: dict[str, Any] = {}
     gt = args.gt or args.nuscenes_gt
-    for key, value in (("ground_truth", gt), ("calib", args.calib)):
+    for key, value in (("ground_truth", gt), ("calib", args.calib), ("score", args.score),
+                       ("difficulty", args.difficulty)):
         if value is not None:
             options[key] = value
     if args.classes:

@@ -7,6 +7,8 @@ One object per line, fields separated by spaces:
                rotation_y [score]
 
 so 15 / 16 fields (object) and 17 / 18 (tracking); a file uses one count on every line.
+AB3DMOT's detection files (`frame,type_id,x1,y1,x2,y2,score,h,w,l,x,y,z,rot_y,alpha`,
+comma-separated, type 1 Pedestrian, 2 Car, 3 Cyclist) are read as tracking lines with score.
 `bbox` is left, top, right, bottom (px); `dimensions` height, width, length (m); `location`
 the bottom centre in rectified camera-0 coordinates (m); `rotation_y` in [-pi, pi].
 """
@@ -27,6 +29,9 @@ NUMBER_FIELDS = ("truncated", "occluded", "alpha", "bbox", "bbox", "bbox", "bbox
 #: Field counts: (object, tracking) x (without, with score).
 OBJECT_COUNTS, TRACKING_COUNTS = (15, 16), (17, 18)
 _WHOLE = re.compile(r"-?[0-9]{1,18}")
+#: AB3DMOT's detection files (one per class and sequence, comma-separated): type ids, fields.
+AB3DMOT_TYPES = {"1": "Pedestrian", "2": "Car", "3": "Cyclist"}
+AB3DMOT_COUNT = 15
 
 
 @dataclass(frozen=True)
@@ -64,6 +69,8 @@ def parse_label_file(text: str, name: str, key: str) -> LabelTable:
     line, the field and the reason for a bad line."""
     lines = [(k, line.split()) for k, line in enumerate(text.splitlines(), start=1)
              if line.strip()]
+    if lines and "," in lines[0][1][0]:
+        lines = [(k, _from_ab3dmot(" ".join(f), f"{name} line {k}", k)) for k, f in lines]
     count = len(lines[0][1]) if lines else OBJECT_COUNTS[0]
     if count not in OBJECT_COUNTS + TRACKING_COUNTS:
         raise FieldError("line", f"{name} line {lines[0][0]}: {count} fields; KITTI labels "
@@ -113,6 +120,21 @@ def concat_tables(tables: list[LabelTable], what: str) -> LabelTable:
         scores=np.concatenate([t.scores for t in tables if t.scores is not None] or
                               [np.zeros(0)]) if has_score else None,
         where=np.concatenate([t.where for t in tables] or [np.zeros(0, dtype=str)]))
+
+
+def _from_ab3dmot(line: str, at: str, number: int) -> list[str]:
+    """An AB3DMOT detection line (`frame,type_id,x1,y1,x2,y2,score,h,w,l,x,y,z,rot_y,alpha`,
+    type 1 Pedestrian, 2 Car, 3 Cyclist) as the fields of a tracking line with score."""
+    fields = [f.strip() for f in line.split(",")]
+    if len(fields) != AB3DMOT_COUNT:
+        raise FieldError("line", f"{at}: {len(fields)} comma-separated fields; AB3DMOT "
+                                 f"detections have {AB3DMOT_COUNT}", row=number)
+    frame, type_id, x1, y1, x2, y2, score, h, w, length, x, y, z, ry, alpha = fields
+    if type_id not in AB3DMOT_TYPES:
+        raise FieldError("type", f"{at}: type_id must be 1 (Pedestrian), 2 (Car) or 3 "
+                                 f"(Cyclist), got {type_id[:40]!r}", row=number)
+    return [frame, "-1", AB3DMOT_TYPES[type_id], "0", "0", alpha, x1, y1, x2, y2, h, w, length,
+            x, y, z, ry, score]
 
 
 def _number(text: str, field: str, at: str, number: int) -> float:

@@ -48,6 +48,24 @@ def test_kitti_to_profile_to_calibrated_results(tmp_path, monkeypatch):
     assert load_parquet(tmp_path / "ds").n_detections == 280
 
 
+def test_kitti_score_and_difficulty_options(tmp_path, monkeypatch, capsys):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "trk").mkdir()
+    (tmp_path / "trk" / "0001.txt").write_text(
+        "0,2,100.0,150.0,200.0,250.0,8.29,1.50,1.60,3.90,1.00,1.65,10.00,0.00,-1.57\n"
+        "0,2,100.0,150.0,200.0,160.0,-0.5,1.50,1.60,3.90,6.00,1.65,20.00,0.00,-1.57\n")
+    (tmp_path / "gt").mkdir()
+    (tmp_path / "gt" / "0001.txt").write_text(
+        "0 1 Car 0 0 0 100.0 150.0 200.0 250.0 1.50 1.60 3.90 1.00 1.65 10.00 0.00\n")
+    assert main(["convert", "trk", "a.npz", "--from", "kitti"]) == 2
+    assert "pass score='logit'" in capsys.readouterr().err
+    assert main(["convert", "trk", "a.npz", "--from", "kitti", "--score", "logit"]) == 0
+    assert load_dump("a.npz").det_logits[0, 0, 0] == 8.29
+    assert main(["convert", "trk", "b.npz", "--from", "kitti", "--score", "logit", "--gt", "gt",
+                 "--difficulty", "moderate"]) == 0
+    assert load_dump("b.npz").n_detections == 1  # the 10 px high detection is dropped
+
+
 def test_openpcdet_needs_its_class_list(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     result = [{"name": np.array(["Car"]), "score": np.array([0.7]),

@@ -113,6 +113,29 @@ def test_single_files_of_other_names(tmp_path):
         load_kitti(det, gt / "labels.txt", calib=calib)
 
 
+def test_ab3dmot_detection_files_per_class(tmp_path):
+    # AB3DMOT README: frame, type (1 Pedestrian, 2 Car, 3 Cyclist), 2D bbox x1 y1 x2 y2, score,
+    # 3D bbox h w l x y z rot_y, alpha; one comma-separated file per class and sequence.
+    write(tmp_path / "dets" / "pointrcnn_Car_val", {"0001.txt": [
+        "0,2,100.0,150.0,200.0,250.0,8.29,1.50,1.60,3.90,1.00,1.65,10.00,0.00,-1.57",
+        "3,2,100.0,150.0,200.0,250.0,-0.71,1.50,1.60,3.90,2.00,1.65,20.00,0.50,-1.0"]})
+    write(tmp_path / "dets" / "pointrcnn_Pedestrian_val", {"0001.txt": [
+        "0, 1, 300.0, 150.0, 320.0, 250.0, 2.5, 1.80, 0.60, 0.80, -3.00, 1.70, 20.00, 1.0, 0.2"]})
+    gt = write(tmp_path / "label_02", {"0001.txt": ["0 4 " + CAR, "0 5 " + PED]})
+    dump = load_kitti(tmp_path / "dets", gt, score="logit")
+    assert dump.frame_ids.tolist() == ["0001/000000", "0001/000003"]
+    car = load_kitti(write(tmp_path / "obj", {"0001.txt": [CAR + " 0.9"]}))
+    np.testing.assert_allclose(dump.final_boxes[0], car.final_boxes[0])
+    assert dump.det_labels.tolist() == [0, 0, 1] and len(dump.gt_labels) == 2
+    np.testing.assert_allclose(dump.det_logits[[0, 1, 2], 0, [0, 0, 1]], [8.29, -0.71, 2.5])
+    bad = write(tmp_path / "bad", {"0001.txt": ["0,4,1,2,3,4,0.5,1,1,1,1,1,1,0,0"]})
+    with pytest.raises(FieldError, match=r"bad/0001.txt line 1: type_id must be 1"):
+        load_kitti(bad, score="logit")
+    short = write(tmp_path / "short", {"0001.txt": ["0,2,1,2,3,4,0.5,1,1,1,1,1,1,0"]})
+    with pytest.raises(FieldError, match=r"line 1: 14 comma-separated fields; AB3DMOT"):
+        load_kitti(short, score="logit")
+
+
 def test_ground_truth_only_for_the_detections_frames(tmp_path):
     det = write(tmp_path / "det", {"000001.txt": [CAR + " 0.9"]})
     gt = write(tmp_path / "gt", {"000000.txt": [PED], "000001.txt": [CAR, "Truck" + CAR[3:]]})
