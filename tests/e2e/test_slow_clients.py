@@ -128,3 +128,20 @@ def test_the_log_is_json_lines_with_detcal_records_and_no_token(slow):
     assert any(r["logger"] == "detcal.http" and "/v1/jobs: 403" in r["message"]
                for r in records)
     assert TOKEN not in text
+
+
+def test_an_oversized_head_is_431_and_closed(slow):
+    with socket.create_connection(("127.0.0.1", slow.port), timeout=10) as sock:
+        sock.sendall(b"GET /healthz HTTP/1.1\r\nHost: x\r\n")
+        try:
+            for _ in range(40):   # 40 x 4 KiB of headers, over the 64 KiB default
+                sock.sendall(b"X-Pad: " + b"a" * 4089 + b"\r\n")
+        except OSError:
+            pass
+        answer = b""
+        try:
+            while chunk := sock.recv(4096):
+                answer += chunk
+        except OSError:
+            pass
+    assert answer.startswith(b"HTTP/1.1 431 "), answer[:100]
