@@ -108,3 +108,17 @@ def short_id(dump) -> bytes:
     batch = request_batch(dump, 2_000)
     assert batch.num_rows == 2_000, "the dump needs 2,000 detections"
     return patched(stream([batch]), batch.schema, "id", "data", value=8, where="length")
+
+
+def heavy_valid(dump, rows: int = 20_000, layers: int = 38) -> bytes:
+    """A valid zstd request of ~1.8 MB that decodes to ~60 MiB (layer_logits `[layers][C]`),
+    just under the 64 MiB cap: accepted, and seconds of work that must stay off the event
+    loop."""
+    batch = request_batch(dump, rows)
+    logits = batch.column("logits").flatten().to_numpy().reshape(rows, 1, -1)
+    per_layer = np.repeat(logits, layers, axis=1)
+    inner = pa.FixedSizeListArray.from_arrays(pa.array(per_layer.reshape(-1)),
+                                              per_layer.shape[-1])
+    cols = {name: batch.column(name) for name in batch.schema.names if name != "logits"}
+    cols["layer_logits"] = pa.FixedSizeListArray.from_arrays(inner, layers)
+    return stream([pa.RecordBatch.from_pydict(cols)], "zstd")

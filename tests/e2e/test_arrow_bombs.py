@@ -5,6 +5,7 @@ a 422 naming the column, and the server keeps answering; the four 500s are 4xx."
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
 
 import httpx
@@ -63,3 +64,24 @@ def test_the_crash_the_echo_and_the_500s_are_422s(bomb_server, dump, build, loc)
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == loc, r.text
     assert alive(bomb_server.proc.pid)
     assert httpx.get(f"{bomb_server.url}/healthz", timeout=5).status_code == 200
+
+
+def test_a_heavy_compressed_body_runs_off_the_event_loop(bomb_server, dump):
+    from tests.e2e.arrow_fuzz import HealthPoller
+
+    data = bombs.heavy_valid(dump)
+    poller = HealthPoller(bomb_server.url, every_s=0.01)
+    poller.start()
+    try:
+        t0 = time.perf_counter()
+        r, rise = _post(bomb_server, data)
+        took = time.perf_counter() - t0
+    finally:
+        poller.stop.set()
+        poller.join()
+    print(f"\nheavy: {len(data)} bytes -> {r.status_code} in {took:.2f} s, peak RSS rise "
+          f"{rise:.0f} MB, /healthz max {max(poller.latencies_ms):.1f} ms over "
+          f"{len(poller.latencies_ms)} polls")
+    assert r.status_code == 200, r.text
+    assert max(poller.latencies_ms) < max(100.0, took * 1e3 / 3)
+    assert rise <= 256
