@@ -23,13 +23,14 @@ N_SLOWLORIS, N_IDLE, N_TRICKLE = 100, 50, 20
 
 
 class SlowServer(Server):
-    """A server with short header and body timeouts and JSON log lines."""
+    """A server with short header and body timeouts and JSON log lines (and `env`)."""
 
     serve_args = ("--log-level", "info")
+    env: dict[str, str] = ENV
 
     def start(self, timeout_s: float = 60.0) -> None:
-        saved = {k: os.environ.get(k) for k in ENV}
-        os.environ.update(ENV)
+        saved = {k: os.environ.get(k) for k in self.env}
+        os.environ.update(self.env)
         try:
             super().start(timeout_s)
         finally:
@@ -145,3 +146,18 @@ def test_an_oversized_head_is_431_and_closed(slow):
         except OSError:
             pass
     assert answer.startswith(b"HTTP/1.1 431 "), answer[:100]
+
+
+def test_beyond_the_concurrency_limit_is_503_until_slow_clients_are_cut_off(tmp_path):
+    srv = SlowServer(tmp_path / "data")
+    srv.env = {**ENV, "DETCAL_LIMIT_CONCURRENCY": "10"}
+    for _ in serving(srv):
+        idle = [socket.create_connection(("127.0.0.1", srv.port)) for _ in range(12)]
+        try:
+            time.sleep(0.2)
+            assert httpx.get(f"{srv.url}/healthz").status_code == 503
+            time.sleep(HEAD_S + 0.5)   # the idle ones are closed by the head deadline
+            assert httpx.get(f"{srv.url}/healthz").status_code == 200
+        finally:
+            for sock in idle:
+                sock.close()
