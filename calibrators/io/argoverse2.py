@@ -16,7 +16,8 @@ The columns of `av2.evaluation.detection` (detections) and of a sensor log's
     num_interior_pts  int      annotations (optional): lidar points inside; 0 is not evaluated
 
 Other columns (`track_uuid`, ...) are ignored. Files are Feather v2 (Arrow IPC files, LZ4 or
-ZSTD compressed or not), read with the service's bounded, validating Arrow reader.
+ZSTD compressed or not; dictionary-encoded columns, as pandas writes a `category` dtype,
+are decoded), each record batch validated in full before any column is read.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ import pyarrow as pa
 
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
-from calibrators.io.arrow_safe import read_safe_stream
 from calibrators.io.reader_files import ByteBudget, check_file
 from calibrators.io.reader_rows import Rows, check_scores, class_list, rows_to_dump
 
@@ -105,12 +105,7 @@ def _read(path: Path, budget: ByteBudget, scored: bool, name: str | None = None
     data = budget.read(path, name)
     if not data.startswith(_MAGIC) or not data.endswith(_MAGIC):
         raise FieldError("feather", f"{name}: not a Feather v2 (Arrow IPC) file")
-    try:
-        batch = read_safe_stream(data[8:], None, budget.left)
-    except FieldError as exc:
-        raise FieldError(exc.field, f"{name}: {exc}") from None
-    table = pa.Table.from_batches([batch])
-    budget.left = max(budget.left - table.nbytes, 0)
+    table = _decoded(data, name, budget)
     want = {"log_id": "string", "timestamp_ns": "integer", "category": "string",
             **{c: "float" for c in FLOAT_COLUMNS}, **({"score": "float"} if scored else {})}
     if not scored and "num_interior_pts" in table.column_names:
@@ -178,3 +173,30 @@ def _rows(table: pa.Table, name: str, index: Mapping[str, int], detections: bool
         check_scores(scores, name, "score")
     return Rows(_tokens(table)[keep], labels[keep], boxes[keep],
                 scores=None if scores is None else scores[keep])
+
+
+def _decoded(data: bytes, name: str, budget: ByteBudget) -> pa.Table:
+    """The Feather file `data` as a table: every record batch charged to `budget` (decoded
+    bytes) and validated in full before the next is read, dictionary columns decoded."""
+    try:
+        reader = pa.ipc.open_file(pa.BufferReader(data))
+        batches = []
+        for i in range(reader.num_record_batches):
+            batch = reader.get_batch(i)
+            if batch.nbytes > budget.left:
+                raise FieldError("feather", f"{name}: decoding it would pass the limit of "
+                                            f"{budget.limit} bytes for one load (max_bytes)")
+            budget.left -= batch.nbytes
+            batch.validate(full=True)
+            batches.append(batch)
+        table = pa.Table.from_batches(batches, schema=reader.schema)
+        for i, field in enumerate(table.schema):
+            if pa.types.is_dictionary(field.type):
+                table = table.set_column(i, field.name,
+                                         table.column(i).cast(field.type.value_type))
+    except FieldError:
+        raise
+    except (ValueError, TypeError, pa.ArrowException, OSError) as exc:
+        raise FieldError("feather", f"{name}: not a readable Feather v2 file: "
+                                    f"{str(exc).splitlines()[0][:200]}") from None
+    return table

@@ -72,6 +72,16 @@ def test_detection_columns(tmp_path, compression):
     assert_same_content(npz_round_trip(dump), dump)
 
 
+def test_dictionary_encoded_columns_are_decoded(tmp_path):
+    """pandas writes a `category` dtype as a dictionary column; the values are read."""
+    tab = table(DETS)
+    at = tab.schema.get_field_index("category")
+    tab = tab.set_column(at, "category", tab.column("category").dictionary_encode())
+    assert pa.types.is_dictionary(tab.schema.field("category").type)
+    dump = load_av2(write(tmp_path, "detections.feather", tab))
+    assert dump.det_labels.tolist() == [0, 1, 5]
+
+
 def test_annotations_as_ground_truth(tmp_path):
     gt = [(LOG, 315968867659956000, "REGULAR_VEHICLE", 12.7, -3.1, 0.8, 4.5, 1.9, 1.5, 2.1, 120),
           (LOG, 315968867659956000, "PEDESTRIAN", 6.0, 4.0, 0.9, 0.6, 0.7, 1.8, -0.5, 0),
