@@ -56,14 +56,38 @@ def shuffled(dump: Dump, seed: int) -> tuple[Dump, np.ndarray]:
     return out, perm
 
 
-def _take_detections(dump: Dump, index: np.ndarray) -> Dump:
-    def take(arr: np.ndarray | None) -> np.ndarray | None:
-        return None if arr is None else arr[index]
+#: The per-detection arrays of a `Dump`.
+_PER_DETECTION = ("det_frame", "det_logits", "det_boxes", "det_cov", "det_hyp_boxes",
+                  "det_hyp_scores", "det_label")
 
-    return replace(dump, det_frame=dump.det_frame[index], det_logits=dump.det_logits[index],
-                   det_boxes=dump.det_boxes[index], det_cov=take(dump.det_cov),
-                   det_hyp_boxes=take(dump.det_hyp_boxes),
-                   det_hyp_scores=take(dump.det_hyp_scores), det_label=take(dump.det_label))
+
+def _take_detections(dump: Dump, index: np.ndarray) -> Dump:
+    """`dump` with its detections `index` (positions, repeats allowed)."""
+    return replace(dump, **{k: None if getattr(dump, k) is None else getattr(dump, k)[index]
+                            for k in _PER_DETECTION})
+
+
+def permuted_document(doc: dict[str, Any], seed: int) -> tuple[dict[str, Any], dict]:
+    """A results document with its tokens reordered and each token's boxes permuted, and
+    `order`: box j of token t in it is box `order[t][j]` of `doc`."""
+    rng = np.random.default_rng(seed)
+    tokens = list(doc["results"])
+    order = {t: rng.permutation(len(doc["results"][t])) for t in tokens}
+    moved = {"meta": doc["meta"], "results": {
+        t: [doc["results"][t][k] for k in order[t]] for t in rng.permutation(tokens).tolist()}}
+    return moved, order
+
+
+def assert_same_boxes(first: dict[str, Any], second: dict[str, Any], order: dict) -> None:
+    """The calibrated `second` (of `permuted_document`'s document) gives every box what the
+    calibrated `first` gives it, with its own detection_row, and lists every token."""
+    assert sorted(second["results"]) == sorted(first["results"])
+    for t, boxes in second["results"].items():
+        for j, box in enumerate(boxes):
+            assert box["detection_row"] == j
+            original = first["results"][t][int(order[t][j])]
+            assert {k: v for k, v in box.items() if k != "detection_row"} == \
+                {k: v for k, v in original.items() if k != "detection_row"}
 
 
 def served(box: dict[str, Any], *keys: str) -> tuple:

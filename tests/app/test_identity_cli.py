@@ -16,7 +16,15 @@ from app.cli import main
 from calibrators import apply_profile
 from calibrators.io import save_dump, save_nuscenes, save_parquet
 from calibrators.profile import CalibrationProfile
-from tests.identity_cases import CASES, awkward, document_by_row, document_values, shuffled
+from tests.identity_cases import (
+    CASES,
+    assert_same_boxes,
+    awkward,
+    document_by_row,
+    document_values,
+    permuted_document,
+    shuffled,
+)
 
 SETTINGS = settings(max_examples=6, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -104,18 +112,9 @@ def test_results_document_permuted_serves_every_box_the_same(tmp_path, base, pro
                                                               case):
     save_nuscenes(awkward(base, case), tmp_path / "a.json")
     doc = json.loads((tmp_path / "a.json").read_text())
-    rng = np.random.default_rng(case["seed"])
-    tokens = list(doc["results"])
-    order = {t: rng.permutation(len(doc["results"][t])) for t in tokens}
-    moved = {"meta": doc["meta"], "results": {
-        t: [doc["results"][t][k] for k in order[t]] for t in rng.permutation(tokens).tolist()}}
+    moved, order = permuted_document(doc, case["seed"])
     (tmp_path / "b.json").write_text(json.dumps(moved))
     a = _calibrate(tmp_path / "a.json", profile_file, tmp_path / "a.out.json")
     b = _calibrate(tmp_path / "b.json", profile_file, tmp_path / "b.out.json")
     assert list(b["results"]) == list(moved["results"])       # every token, empty ones too
-    for t in tokens:
-        for j, box in enumerate(b["results"][t]):
-            assert box["detection_row"] == j
-            original = a["results"][t][int(order[t][j])]
-            assert {k: v for k, v in box.items() if k != "detection_row"} == \
-                {k: v for k, v in original.items() if k != "detection_row"}
+    assert_same_boxes(a, b, order)

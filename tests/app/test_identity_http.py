@@ -21,7 +21,15 @@ from calibrators.io import save_nuscenes
 from calibrators.io.arrow_batch import ARROW_STREAM, read_stream, write_stream
 from tests.app.conftest import ADMIN
 from tests.app.feedback_frames import feedback_frames, npz_bytes
-from tests.identity_cases import CASES, RECORD_KEYS, awkward, document_by_row, served, shuffled
+from tests.identity_cases import (
+    CASES,
+    RECORD_KEYS,
+    assert_same_boxes,
+    awkward,
+    permuted_document,
+    served,
+    shuffled,
+)
 
 SETTINGS = settings(max_examples=5, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -113,25 +121,15 @@ def test_arrow_calibrate_serves_every_row_the_same(client, base, case):
 def test_nuscenes_calibrate_serves_every_box_the_same(client, base, case, tmp_path):
     save_nuscenes(awkward(base, case), tmp_path / "r.json")
     doc = json.loads((tmp_path / "r.json").read_text())
-    rng = np.random.default_rng(case["seed"])
-    tokens = list(doc["results"])
-    order = {t: rng.permutation(len(doc["results"][t])) for t in tokens}
-    moved = {"meta": doc["meta"], "results": {
-        t: [doc["results"][t][k] for k in order[t]] for t in rng.permutation(tokens).tolist()}}
+    moved, order = permuted_document(doc, case["seed"])
     out = []
     for d in (doc, moved):
         r = client.post("/v1/calibrate/nuscenes", params={"levels": LEVELS}, json=d)
         assert r.status_code == 200, r.text
         out.append(r.json())
     assert list(out[1]["results"]) == list(moved["results"])
-    a, b = document_by_row(out[0]), out[1]["results"]
-    for t in tokens:
-        first = {box["detection_row"]: box for box in out[0]["results"][t]}
-        for j, box in enumerate(b[t]):
-            assert box["detection_row"] == j
-            assert {k: v for k, v in box.items() if k != "detection_row"} == \
-                {k: v for k, v in first[int(order[t][j])].items() if k != "detection_row"}
-    assert len(a) == max(len(v) for v in doc["results"].values())
+    assert_same_boxes(out[0], out[1], order)
+    assert out[0]["calibration"]["levels"] == LEVELS
 
 
 def _window(settings_, body: dict | None = None, files: dict | None = None) -> dict:
