@@ -19,17 +19,9 @@ from hypothesis import strategies as st
 from app.main import create_app
 from calibrators.io import save_nuscenes
 from calibrators.io.arrow_batch import ARROW_STREAM, read_stream, write_stream
+from tests import identity_cases as ic
 from tests.app.conftest import ADMIN
 from tests.app.feedback_frames import feedback_frames, npz_bytes
-from tests.identity_cases import (
-    CASES,
-    RECORD_KEYS,
-    assert_same_boxes,
-    awkward,
-    permuted_document,
-    served,
-    shuffled,
-)
 
 SETTINGS = settings(max_examples=5, deadline=None,
                     suppress_health_check=[HealthCheck.function_scoped_fixture])
@@ -69,14 +61,14 @@ def _by_id(body: dict) -> dict:
     for frame in body["frames"]:
         for j, det in enumerate(frame["detections"]):
             assert det["row"] == j
-            out[det["id"]] = (frame["frame_id"], served(det, *RECORD_KEYS))
+            out[det["id"]] = (frame["frame_id"], ic.served(det, *ic.RECORD_KEYS))
     return out
 
 
 @SETTINGS
-@given(case=CASES)
+@given(case=ic.CASES)
 def test_json_calibrate_serves_every_detection_the_same(client, base, case):
-    dump = awkward(base, case)
+    dump = ic.awkward(base, case)
     records = _records(dump)
     rng = np.random.default_rng(case["seed"])
     moved = [records[i] for i in rng.permutation(len(records))]
@@ -98,9 +90,9 @@ def _arrow(records: list) -> bytes:
 
 
 @SETTINGS
-@given(case=CASES)
+@given(case=ic.CASES)
 def test_arrow_calibrate_serves_every_row_the_same(client, base, case):
-    records = _records(awkward(base, case))
+    records = _records(ic.awkward(base, case))
     rng = np.random.default_rng(case["seed"])
     moved = [records[i] for i in rng.permutation(len(records))]
     got = []
@@ -117,18 +109,18 @@ def test_arrow_calibrate_serves_every_row_the_same(client, base, case):
 
 
 @SETTINGS
-@given(case=CASES)
+@given(case=ic.CASES)
 def test_nuscenes_calibrate_serves_every_box_the_same(client, base, case, tmp_path):
-    save_nuscenes(awkward(base, case), tmp_path / "r.json")
+    save_nuscenes(ic.awkward(base, case), tmp_path / "r.json")
     doc = json.loads((tmp_path / "r.json").read_text())
-    moved, order = permuted_document(doc, case["seed"])
+    moved, order = ic.permuted_document(doc, case["seed"])
     out = []
     for d in (doc, moved):
         r = client.post("/v1/calibrate/nuscenes", params={"levels": LEVELS}, json=d)
         assert r.status_code == 200, r.text
         out.append(r.json())
     assert list(out[1]["results"]) == list(moved["results"])
-    assert_same_boxes(out[0], out[1], order)
+    ic.assert_same_boxes(out[0], out[1], order)
     assert out[0]["calibration"]["levels"] == LEVELS
 
 
@@ -164,11 +156,11 @@ def fresh(tmp_path, profile_json_given):
 
 @settings(max_examples=3, deadline=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])
-@given(case=CASES, upload=st.booleans())
+@given(case=ic.CASES, upload=st.booleans())
 def test_feedback_records_the_same_evidence_whatever_the_order(fresh, case, upload,
                                                                base):
-    dump = awkward(base, case)
-    moved, _ = shuffled(dump, case["seed"])
+    dump = ic.awkward(base, case)
+    moved, _ = ic.shuffled(dump, case["seed"])
     wins = []
     for d in (dump, moved):
         if upload:
