@@ -45,7 +45,9 @@ def test_each_write_is_audited_once_in_its_own_transaction(store: Store) -> None
     log = store.audit_log()
     assert [(e.action, e.target, e.token_id) for e in log] == [
         ("activate", "lidar@champion", "tok-b"), ("alias", "lidar@challenger", "tok-a")]
-    assert log[0].detail == {"v": 1} and log[0].id > log[1].id
+    # the store adds `previous`, read in the write's own transaction (issue 25)
+    assert log[0].detail == {"v": 1, "previous": 1} and log[0].id > log[1].id
+    assert log[1].detail == {"previous": None}
     assert [e.action for e in store.audit_log(before=log[0].id)] == ["alias"]
     assert [e.action for e in store.audit_log(action="alias")] == ["alias"]
     assert len(store.audit_log(target="lidar")) == 2 and store.audit_log(target="li") == []
