@@ -221,7 +221,10 @@ class DetectionOut(BaseModel):
     score: float = Field(description="Calibrated score of `label`.")
     score_raw: float
     class_scores: list[float] | None = Field(
-        None, description="Calibrated probability of every class (when logits were given).")
+        None, description="Calibrated probability of every class, in the profile's class "
+                          "order: given when logits or layer_logits were sent and the "
+                          "profile's score stage is one temperature; null for score + label "
+                          "and for a per-class score stage (Platt, isotonic, ...: docs/api.md).")
     box: list[float]
     covariance: list[list[float]] = Field(description="Calibrated `[D, D]` over `cov_dims`.")
     ellipse: EllipseOut | None = Field(description="None when cov_dims lack x or y.")
