@@ -8,6 +8,7 @@ The spine every front end goes through (service, CLI, dashboard, report):
 
     profile = fit_profile(dump, FitOptions(holdout=0.3))   # fit
     out = apply_profile(dump, profile)                      # apply -> CalibratedDetections
+    out = Detections.from_dump(dump, profile.cov_source).calibrate(profile)   # the same
     summary = summarize(dump, profile)                      # before/after -> Summary
 
 and, for the arrays in between, `match_dump`, `tp_residuals`, `raw_covariances`.
@@ -17,6 +18,7 @@ from calibrators import io, metrics
 from calibrators.apply import apply_profile, check_profile_fits
 from calibrators.covariance import layer_spread
 from calibrators.depth import DepthScaler
+from calibrators.detections import Detections
 from calibrators.dump import Dump
 from calibrators.ellipse import Ellipse, ellipse
 from calibrators.evaluate import EvaluationReport, evaluate
@@ -35,6 +37,7 @@ __all__ = [
     "CalibratedDetections",
     "CalibrationProfile",
     "DepthScaler",
+    "Detections",
     "Dump",
     "Ellipse",
     "EvaluationReport",

@@ -3,8 +3,10 @@
 - `load_dump(path, format=...)`: any dump format (npz, parquet, nuscenes, kitti, openpcdet,
   mmdet3d, av2; `calibrators.io.formats`); `save_dump`: validation dump v1, a columnar NPZ.
 - `load_nuscenes` / `save_nuscenes`: a nuScenes results JSON plus (optionally) a ground-truth
-  JSON in `DetectionBox` form; `calibrate_results_document` writes calibrated scores and
-  covariances into an existing results document, keeping all its other fields.
+  JSON in `DetectionBox` form; `detections_from_nuscenes` / `calibrated_document`: a results
+  document as the calibrate batch (`calibrators.Detections`) and calibrated detections as a
+  results document, each box with its identity (`calibrate_results_document`, by reading
+  order, is kept for compatibility).
 - `open_parquet` / `load_parquet` / `save_parquet` / `ParquetWriter`: a dump as a Parquet
   dataset folder (parts of whole frames) for streamed and distributed fits.
 - `file_sha256`: content hash for provenance; `atomic_write`: a file replaced in one rename.

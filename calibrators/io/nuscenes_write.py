@@ -1,7 +1,8 @@
 """Writing nuScenes results JSON: a `Dump` as a results document (`save_nuscenes`), and
-calibrated scores, covariances and ellipses written into an existing document
-(`calibrate_results_document`, `ellipses_json`). Reading lives in `calibrators.io.nuscenes`;
-docs/formats.md describes the format.
+calibrated scores and covariances written into an existing document by reading order
+(`calibrate_results_document`, kept for compatibility: calibrated results go through
+`calibrators.io.nuscenes_batch.calibrated_document`). Reading lives in
+`calibrators.io.nuscenes`; docs/formats.md describes the format.
 """
 
 from __future__ import annotations
@@ -88,7 +89,10 @@ def calibrate_results_document(document: dict, scores: np.ndarray,
                                cov_dims: Sequence[str] = ("x", "y"), *,
                                ellipses: Sequence[Mapping[str, Any] | None] | None = None
                                ) -> dict:
-    """A copy of a results `document` with calibrated scores (and covariances) written in.
+    """A copy of a results `document` with calibrated scores (and covariances) written in, by
+    reading order: the caller must have computed them on `load_nuscenes(document)`'s boxes in
+    that order. Kept for compatibility; `calibrated_document` (the calibrated-results
+    contract of `detcal calibrate` and the service) carries each box's identity instead.
 
     Boxes are taken in the order `load_nuscenes` reads them (sample tokens in file order, boxes
     in list order), so `scores [N]` and `covariances [N, D, D]` computed on the loaded dump
