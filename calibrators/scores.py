@@ -60,10 +60,14 @@ def _temperature(temperature: float) -> float:
     return check_positive("temperature", temperature)
 
 
-def probability_logit(p: np.ndarray) -> np.ndarray:
-    """`logit(p)` of probabilities `[N]`, clipped 1e-12 away from 0 and 1 (finite)."""
-    q = np.clip(np.asarray(p, dtype=np.float64), _EPS, 1.0 - _EPS)
-    return np.log(q) - np.log1p(-q)
+def probability_logit(p: np.ndarray, clip: bool = True) -> np.ndarray:
+    """`logit(p)` of probabilities `[N]`, clipped 1e-12 away from 0 and 1 (finite); with
+    `clip=False`, ±inf at exactly 0 and 1 (a temperature maps them back to 0 and 1)."""
+    q = np.asarray(p, dtype=np.float64)
+    if clip:
+        q = np.clip(q, _EPS, 1.0 - _EPS)
+    with np.errstate(divide="ignore"):
+        return np.log(q) - np.log1p(-q)
 
 
 def probabilities_logits(p: np.ndarray, mode: str) -> np.ndarray:

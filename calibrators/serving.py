@@ -258,11 +258,10 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
     lab = as_int_array("labels", _required("labels (with scores)", labels))
     check_length("labels", lab, len(p), "scores")
     check_index("labels", lab, n_classes, "classes")
-    z_label = probability_logit(p)
-    if calibrator is None:
-        return lab, expit(z_label / profile.temperature), p, None
+    if calibrator is None:   # exactly 0 and 1 stay 0 and 1 (as version 1 profiles served)
+        return lab, expit(probability_logit(p, clip=False) / profile.temperature), p, None
     check_length("scores", p, len(distances), "boxes")
-    return lab, calibrator.transform(z_label, lab, distances=distances), p, None
+    return lab, calibrator.transform(probability_logit(p), lab, distances=distances), p, None
 
 
 def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None,
