@@ -31,7 +31,7 @@ class Settings(BaseSettings):
                                 "dump (all NPZ arrays, or each nuScenes JSON file) a fit or "
                                 "feedback request may carry; 413 (NPZ, from its headers, before "
                                 "inflating) or 422 above.")
-    max_fit_detections: int = Field(100_000, gt=0, description="Detections (or ground-truth "
+    max_fit_detections: int = Field(75_000, gt=0, description="Detections (or ground-truth "
                                     "boxes) of one uploaded fit dump, and of each part of a "
                                     "dataset fit in place (413 / 422 above).")
     max_json_dump_bytes: int = Field(32 * 2**20, gt=0, description="A nuScenes results and "

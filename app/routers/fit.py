@@ -95,6 +95,7 @@ def fit(
         check_fit_input(loaded, fit_options)
     except OptionError as exc:
         raise RequestError(["body", exc.field], str(exc)) from None
+    del loaded   # checked: free it before the job loads its own copy (one dump in memory)
     audit = AuditEntry("fit", profile_name, token, {"dump_sha256": stored.sha256,
                                                     "activate": activate})
     job = store.create_job(profile_name, fit_options.to_dict(), stored.sha256, gt_sha, activate,
