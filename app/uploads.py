@@ -48,6 +48,7 @@ def load_upload(load: Callable[[], Dump], field: str) -> Dump:
 
 
 _MAX_HEADER = 10_000   # bytes of a .npy header (numpy's default limit)
+_MAX_MEMBERS = 16      # a validation dump v1 has 15 keys at most
 _ROW_KEYS = {"detections": ("det_logits", "det_boxes", "det_frame"),
              "gt": ("gt_boxes", "gt_labels", "gt_frame")}
 
@@ -63,6 +64,7 @@ class DeclaredDump:
     inflated_bytes: int
     shapes: dict[str, tuple[int, ...]]
     sizes: dict[str, int]
+    members: int = 0
 
 
 def declared_npz(file: BinaryIO) -> DeclaredDump | None:
@@ -71,6 +73,9 @@ def declared_npz(file: BinaryIO) -> DeclaredDump | None:
     position is restored. None when it is not a readable NPZ: the loader then says why."""
     start = file.tell()
     try:
+        members = _zip_entries(file)
+        if members is not None and members > _MAX_MEMBERS:   # never parse such a directory
+            return DeclaredDump(0, 0, 0, 0, {}, {}, members)
         with zipfile.ZipFile(file) as archive:
             shapes: dict[str, tuple[int, ...]] = {}
             sizes: dict[str, int] = {}
@@ -83,8 +88,7 @@ def declared_npz(file: BinaryIO) -> DeclaredDump | None:
                 key = info.filename.removesuffix(".npy")
                 shapes[key] = shape
                 sizes[key] = max(math.prod(shape) * dtype.itemsize, info.file_size)
-    except (zipfile.BadZipFile, zipfile.LargeZipFile, ValueError, OSError, EOFError,
-            NotImplementedError, TypeError):
+    except Exception:  # noqa: BLE001 - a pre-check: the loader then says what is wrong
         return None
     finally:
         file.seek(start, os.SEEK_SET)
@@ -95,7 +99,7 @@ def declared_npz(file: BinaryIO) -> DeclaredDump | None:
     return DeclaredDump(detections=rows(_ROW_KEYS["detections"]),
                         ground_truth=rows(_ROW_KEYS["gt"]),
                         frames=rows(("frame_ids",)), inflated_bytes=sum(sizes.values()),
-                        shapes=shapes, sizes=sizes)
+                        shapes=shapes, sizes=sizes, members=len(shapes))
 
 
 def check_declared(declared: DeclaredDump | None, *, max_bytes: int, max_detections: int,
@@ -104,6 +108,10 @@ def check_declared(declared: DeclaredDump | None, *, max_bytes: int, max_detecti
     than `max_detections` detections (or ground-truth boxes): refused before it is built."""
     if declared is None:
         return
+    if declared.members > _MAX_MEMBERS:
+        raise RequestError(["body", field], f"the {what} dump's zip directory declares "
+                           f"{declared.members} members; a validation dump has at most "
+                           f"{_MAX_MEMBERS}")
     rows = max(declared.detections, declared.ground_truth)
     if rows > max_detections:
         keys = _ROW_KEYS["detections" if declared.detections >= declared.ground_truth else "gt"]
@@ -120,3 +128,24 @@ def check_declared(declared: DeclaredDump | None, *, max_bytes: int, max_detecti
                            f"{declared.shapes[big]}, to {declared.sizes[big]}), more than the "
                            f"limit of {max_bytes} bytes per request (DETCAL_MAX_DUMP_BYTES)",
                            status=413)
+
+
+def _zip_entries(file: BinaryIO) -> int | None:
+    """The member count a zip's end-of-central-directory record declares (zip64 included),
+    read from the file's last 64 KiB; None if there is no such record."""
+    file.seek(0, os.SEEK_END)
+    size = file.tell()
+    tail_len = min(size, 65_557)   # the record (22 bytes) and a comment of up to 64 KiB
+    file.seek(size - tail_len)
+    tail = file.read(tail_len)
+    at = tail.rfind(b"PK\x05\x06")
+    if at < 0 or len(tail) - at < 22:
+        return None
+    total = int.from_bytes(tail[at + 10:at + 12], "little")
+    loc = at - 20   # zip64: the locator just before names the zip64 record
+    if total == 0xFFFF and loc >= 0 and tail[loc:loc + 4] == b"PK\x06\x07":
+        file.seek(int.from_bytes(tail[loc + 8:loc + 16], "little"))
+        record = file.read(56)
+        if record[:4] == b"PK\x06\x06":
+            total = int.from_bytes(record[32:40], "little")
+    return total

@@ -128,3 +128,19 @@ def json_box(box: dict) -> str:
     import json
 
     return json.dumps(box)
+
+
+def test_a_zip_directory_of_70000_members_is_refused_unparsed(client):
+    """A central directory of millions of entries would take gigabytes to parse: the count
+    the end record declares (zip64 here) is read first."""
+    import io
+    import zipfile
+
+    buf = io.BytesIO()
+    with zipfile.ZipFile(buf, "w") as archive:
+        for i in range(70_000):
+            archive.writestr(f"m{i}.npy", b"")
+    start = time.monotonic()
+    r = client.post(FB, headers=ADMIN, files={"dump": ("fb.npz", buf.getvalue())})
+    assert r.status_code == 422 and time.monotonic() - start < 1.0, r.text
+    assert "declares 70000 members" in r.json()["detail"][0]["msg"]
