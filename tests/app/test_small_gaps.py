@@ -6,7 +6,9 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+from fastapi.testclient import TestClient
 
+from app.main import create_app
 from tests.app.conftest import ADMIN
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -59,3 +61,14 @@ def test_head_is_answered_wherever_get_is(client, path):
 
 def test_head_where_get_is_not_allowed_is_405(client):
     assert client.head("/v1/fit").status_code == 405
+
+
+def test_the_feedback_token_may_read_jobs_but_not_the_audit(seeded):
+    from pydantic import SecretStr
+
+    settings = seeded.model_copy(update={"feedback_token": SecretStr("feedback-token-abc")})
+    with TestClient(create_app(settings)) as c:
+        fb = {"Authorization": "Bearer feedback-token-abc"}
+        assert c.get("/v1/jobs", headers=fb).status_code == 200
+        assert c.get("/v1/jobs/" + "0" * 32, headers=fb).status_code == 404
+        assert c.get("/v1/audit", headers=fb).status_code == 403
