@@ -23,6 +23,7 @@ from app.body import dumps_json, parse_json
 from app.cache import ProfileCache
 from app.calibration import calibrate_frames, calibrate_results
 from app.errors import RequestError, error_body
+from app.profile_match import check_classes
 from app.schemas.calibrate import DEFAULT_LEVELS, CalibrateRequest
 from app.schemas.nuscenes import NuScenesResults
 from app.store import NotFoundError
@@ -110,6 +111,7 @@ class CalibrateEngine:
         try:
             loaded = self.cache.resolve(body.profile, self.default_profile,
                                         loc=_where("profile", from_query))
+            check_classes(loaded, body.classes)
             rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence,
                                     levels=body.levels, max_detections=self.max_detections)
         except RequestError as exc:   # an option the query gave is located in the query

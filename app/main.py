@@ -10,8 +10,8 @@ from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
-from fastapi_offline import FastAPIOffline
 
+from app.api_docs import install_docs
 from app.arrow_fast import ArrowCalibrateMiddleware
 from app.body import install_openapi
 from app.bundled_detectors import DetectorService
@@ -95,9 +95,10 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             app.state.calibrator.close()
             store.close()
 
-    # /docs and /redoc load Swagger UI and ReDoc from the installed package, never a CDN.
-    app = FastAPIOffline(title="detcal", version=detcal_version(), description=DESCRIPTION,
-                         lifespan=lifespan, dependencies=[Depends(refuse_empty_form_fields)])
+    app = FastAPI(title="detcal", version=detcal_version(), description=DESCRIPTION,
+                  lifespan=lifespan, dependencies=[Depends(refuse_empty_form_fields)],
+                  docs_url=None, redoc_url=None)
+    install_docs(app)   # /docs and /redoc from the installed package, never a CDN
     app.state.settings = settings
     app.state.metrics = ServiceMetrics()
     app.state.detectors = DetectorService()

@@ -11,6 +11,7 @@ from app.body import body_doc, json_body, json_response
 from app.bundled_detectors import DetectorService, DetectorUnavailable, detections_of
 from app.calibration import calibrate_frames
 from app.deps import CacheDep, MetricsDep, SettingsDep
+from app.profile_match import profile_for_sensor
 from app.schemas.calibrate import DetectRequest, DetectResponse, FrameIn
 from app.schemas.common import ErrorResponse
 
@@ -30,7 +31,8 @@ def detect(body: Annotated[DetectRequest, Depends(json_body(DetectRequest))], ca
            settings: SettingsDep, metrics: MetricsDep,
            detectors: DetectorsDep) -> Response:
     """Detect on a simulated frame with a bundled detector and calibrate with a profile."""
-    loaded = cache.resolve(body.profile, settings.default_profile)
+    loaded, warnings = profile_for_sensor(cache, body.profile, body.sensor,
+                                          settings.default_profile)
     try:
         out = detectors.run(body.sensor, body.seed or 0, body.points, body.min_score)
     except DetectorUnavailable as exc:
@@ -49,5 +51,5 @@ def detect(body: Annotated[DetectRequest, Depends(json_body(DetectRequest))], ca
         "ellipse_confidence": body.ellipse_confidence, "sensor": body.sensor,
         "seed": seed,
         "frames": [{"frame_id": frame.frame_id, "detections": rows}],
-        "ground_truth": gt if body.points is None else None,
+        "ground_truth": gt if body.points is None else None, "warnings": warnings,
     })

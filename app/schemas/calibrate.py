@@ -180,6 +180,10 @@ class CalibrateRequest(BaseModel):
     ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
     levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT,
                                 json_schema_extra=LEVELS_SCHEMA)
+    classes: list[str] | None = Field(
+        None, description="Optional: your detector's classes in its logits' column order. When "
+                          "given and not the profile's list, the request is a 422 saying what "
+                          "differs (the columns would be read as other classes).")
     frames: list[FrameIn] = Field(min_length=1)
 
 
@@ -289,3 +293,6 @@ class DetectResponse(CalibrateResponse):
     sensor: str
     seed: int | None
     ground_truth: list[dict[str, object]] | None = None
+    warnings: list[str] = Field(default_factory=list, description=(
+        "What may make the answer wrong though it could be served, e.g. a sensor with no "
+        "profile of its name calibrated with the default profile."))

@@ -155,6 +155,10 @@ CASES = [
     Case("GET", "/readyz", 503, url("/readyz"), client="empty"),
     Case("GET", "/metrics", 200, url("/metrics")),
     Case("GET", "/", 200, url("/"), client="empty"),
+    # the API docs, served from the installed fastapi-offline package (HTML, no model)
+    Case("GET", "/docs", 200, url("/docs")),
+    Case("GET", "/docs/oauth2-redirect", 200, url("/docs/oauth2-redirect")),
+    Case("GET", "/redoc", 200, url("/redoc")),
     Case("POST", CAL, 200, lambda w: {"url": CAL, "json": {"frames": w.frames()}}),
     Case("POST", CAL, 404, lambda w: {"url": CAL, "json": {"profile": "nope",
                                                            "frames": w.frames()}}),
