@@ -123,18 +123,6 @@ class Detections:
         """The keyword arguments of `CalibrationProfile.calibrate` (the arrays given)."""
         return {k: getattr(self, k) for k in _CALIBRATE_ARGS if getattr(self, k) is not None}
 
-    def take(self, index: np.ndarray) -> Detections:
-        """The detections at `index [M]` (int positions), each keeping its identity."""
-        index = np.asarray(index, dtype=np.int64)
-        out: dict[str, Any] = {}
-        for f in fields(self):
-            value = getattr(self, f.name)
-            if value is None or f.name == "frame_tokens":
-                continue
-            out[f.name] = (value[index] if isinstance(value, np.ndarray)
-                           else [value[i] for i in index.tolist()])
-        return replace(self, **out)
-
     def calibrate(self, profile: CalibrationProfile, *, ellipse_confidence: float = 0.95,
                   levels: Sequence[float] | None = None) -> CalibratedDetections:
         """These detections calibrated with `profile` (`calibrators.serving`), in this order;

@@ -12,7 +12,7 @@ Writing (`calibrated_document`): boxes grouped by sample token (every frame of t
 those without boxes included), in input row order within a token. Each box keeps its keys and
 gets `detection_name` (the served label), `detection_score` (calibrated),
 `detection_score_raw` (the raw score the profile calibrated), `covariance` (Σ' over
-`meta.cov_dims`), `ellipse` (at the ellipse confidence), `ellipses` (per level) and its
+`calibration.cov_dims`), `ellipse` (at the ellipse confidence), `ellipses` (per level) and its
 identity: `detection_row` and, when the input had one, `detection_id`.
 """
 
@@ -95,9 +95,10 @@ def calibrated_document(calibrated: CalibratedDetections | Sequence[CalibratedDe
                         calibration: Mapping[str, Any] | None = None,
                         meta: Mapping[str, Any] | None = None) -> dict[str, Any]:
     """The results document of `calibrated` (one result or several, e.g. one per evidence
-    form of a document) in the output contract of the module docstring; `meta` is kept and
-    gets `cov_dims` (None: the devkit's `use_*` flags and `classes`), `calibration` is written
-    as the document's top-level `calibration` key."""
+    form of a document) in the output contract of the module docstring: `meta` is kept (its
+    `cov_dims`, if any, set to the dims of the covariances written; None: the devkit's `use_*`
+    flags, `classes` and `cov_dims`), `calibration` is written as the document's top-level
+    `calibration` key with the covariances' `cov_dims`."""
     parts = [calibrated] if not isinstance(calibrated, Sequence) else list(calibrated)
     tokens: dict[Any, list[tuple[int, dict[str, Any]]]] = {}
     for part in parts:
@@ -127,16 +128,16 @@ def calibrated_document(calibrated: CalibratedDetections | Sequence[CalibratedDe
             tokens.setdefault(str(rec["frame_id"]), []).append((rec["row"], box))
     first = parts[0] if parts else None
     out_meta = dict(meta) if meta is not None else dict(DEVKIT_META)
-    if first is not None:
-        if meta is None:
-            out_meta["classes"] = list(first.classes)
-        out_meta["cov_dims"] = list(first.cov_dims)
+    if first is not None and (meta is None or "cov_dims" in meta):   # the dims written
+        out_meta.update({} if meta is not None else {"classes": list(first.classes)},
+                        cov_dims=list(first.cov_dims))
     doc: dict[str, Any] = {
         "meta": out_meta,
         "results": {t: [b for _, b in sorted(boxes, key=lambda rb: rb[0])]
                     for t, boxes in tokens.items()}}
     if calibration is not None:
-        doc["calibration"] = dict(calibration)
+        doc["calibration"] = {**calibration,
+                              "cov_dims": None if first is None else list(first.cov_dims)}
     return doc
 
 

@@ -114,6 +114,7 @@ def test_nuscenes_document_round_trip(client):
     assert box["detection_score_raw"] == 0.8 and box["detection_score"] != 0.8
     assert box["num_pts"] == 12 and box["translation"] == [120.0, 50.0, 1.0]
     assert len(box["covariance"]) == 2 and box["covariance"][0][0] > 0.1   # k·d added, d = 20
-    assert out["meta"] == {"use_lidar": True, "cov_dims": ["x", "y"]}   # Σ' dims recorded
+    assert out["meta"] == {"use_lidar": True}
+    assert out["calibration"]["cov_dims"] == ["x", "y"]                 # the dims of Σ' written
     assert out["calibration"]["profile"]["id"] == "lidar@1"
     json.dumps(out, allow_nan=False)
