@@ -119,6 +119,28 @@ class Detections:
                    frame_tokens=list(np.asarray(dump.frame_ids).tolist()),
                    **source_arrays(dump, cov_source))
 
+    @staticmethod
+    def from_records(records: Sequence[Mapping[str, Any]], classes: Sequence[str],
+                     score_mode: str) -> list[Detections]:
+        """JSON records as one batch per evidence form (`detections_from_records`)."""
+        return detections_from_records(records, classes, score_mode)
+
+    @staticmethod
+    def from_nuscenes(document: Mapping[str, Any], classes: Sequence[str], score_mode: str
+                      ) -> list[Detections]:
+        """A results document's boxes as one batch per evidence form
+        (`calibrators.io.nuscenes_batch.detections_from_nuscenes`)."""
+        from calibrators.io.nuscenes_batch import detections_from_nuscenes
+
+        return detections_from_nuscenes(document, classes, score_mode)
+
+    @staticmethod
+    def from_arrow(batch: Any, classes: Sequence[str]) -> Detections:
+        """An Arrow request batch (`calibrators.io.arrow_batch.batch_request`; pyarrow)."""
+        from calibrators.io.arrow_batch import batch_request
+
+        return batch_request(batch, classes)
+
     def calibrate_arguments(self) -> dict[str, np.ndarray]:
         """The keyword arguments of `CalibrationProfile.calibrate` (the arrays given)."""
         return {k: getattr(self, k) for k in _CALIBRATE_ARGS if getattr(self, k) is not None}
