@@ -5,7 +5,7 @@ For every sensor whose shipped weights exist, the detector runs on fixed test-sp
 is reported with the frame's number of points and queries, and the same with the default
 decoding (`detectors.infer.postprocess`: top-K pairs and circle NMS) after the forward
 pass, what `detcal dump` and `/v1/detect` run per frame. Reference: the thesis's 50 ms
-per frame (on a GPU), which is also issue 3's target for the lidar detector on 2 CPU cores;
+per frame (on a GPU), which is also the lidar detector's target on 2 CPU cores;
 the ratio column is time / 50 ms (below 1 meets the target).
 
 Run: `.venv/bin/python -m bench.bench_detectors` (writes the "detectors" section of
