@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 
 DE_COMMANDS = """\
 Deep ensembles (DE N = 2/4): member 0 is the report's lidar model, `lidar_de0.pt` (the v1
-lidar detector, training seed 0; the shipped `lidar.pt` is v2 (group regression heads), compared with
+lidar detector, training seed 0; the shipped `lidar.pt` is v2 (group heads), compared with
 it in [detectors_v2.md](detectors_v2.md)), the others are the same v1 recipe with seeds 1-3;
 the deep sub-ensemble (DSE N = 2) is two new decoder heads trained on the frozen trunk of
 member 0 (thesis 4.3.3; merged by query index like MC dropout, since both heads decode the
