@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from app.cache import LoadedProfile
-from app.dashboard.intervals import RULE, proportion_interval, too_small
+from app.dashboard.intervals import MIN_TPS, RULE, proportion_interval, too_small
 from app.store import JobRecord, NameSummary
 from calibrators import ProfileReport, Summary
 from calibrators.summary_types import Pair
@@ -175,7 +175,10 @@ class DashboardRenderer:
 
             out = ("<div class='plots'>" + plots.reliability(data) + plots.calibration_curves(data)
                    + plots.residual_plot(data) + "</div><h2>Reliability per class</h2>"
-                   + plots.reliability_per_class(data))
+                   "<p class='note'>Fit part; each title gives the class's true positives, and "
+                   f"a panel with fewer than {MIN_TPS} is grey: too few to judge.</p>"
+                   + plots.reliability_per_class(
+                       data, {row.name: row.tp for row in report.fit.per_class}))
         with self._lock:
             self._plots[key] = out
         return out

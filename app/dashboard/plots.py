@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from app.dashboard.intervals import too_small
 from detectors.panels import Curve, panel_grid, pyplot
 from detectors.panels.calibration_curve import calibration_curve_panel
 from detectors.panels.reliability import reliability_panel
@@ -74,13 +75,21 @@ def reliability(plots: dict, title: str = "Reliability (all classes)") -> str:
 
 
 @_figure
-def reliability_per_class(plots: dict) -> str:
-    """Small-multiple reliability diagrams, one per class."""
+def reliability_per_class(plots: dict, tps_of: dict[str, int] | None = None) -> str:
+    """Small-multiple reliability diagrams, one per class, titled with the class's true
+    positives (`tps_of`) and greyed when they are too few to judge."""
+    tps_of = tps_of or {}
     per = plots.get("reliability_per_class") or {}
     fig, axes = panel_grid(len(per), 5, 2.0, 2.15)
     for i, (ax, (name, pair)) in enumerate(zip(axes.flat, per.items(), strict=False)):
-        reliability_panel(ax, _before_after(pair, "confidence", "accuracy", 1.2), name,
-                          square=True)
+        tps = tps_of.get(name)
+        reliability_panel(ax, _before_after(pair, "confidence", "accuracy", 1.2),
+                          name if tps is None else f"{name} ({tps} TPs)", square=True)
+        if tps is not None and too_small(tps):   # the tables' rule: too few true positives to judge
+            ax.set_facecolor("#f3f4f6")
+            ax.title.set_color("#9aa3ad")
+            ax.text(0.97, 0.04, "too few to judge", ha="right", fontsize=6, color="#9aa3ad",
+                    transform=ax.transAxes)
         ax.tick_params(labelsize=6)
         ax.set_xlabel("confidence", fontsize=7)
         if i % axes.shape[1] == 0:
