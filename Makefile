@@ -53,9 +53,13 @@ postgres:
 	  echo "installing Debian postgresql for the store tests"; \
 	  apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq postgresql >/dev/null; }
 
+# Two pytest workers (pytest-xdist), one test file each at a time: module fixtures (servers,
+# fitted profiles) start once per file. TEST_WORKERS=0 runs in one process.
+TEST_WORKERS ?= 2
+
 test: install browser postgres
 	$(PY) -m ruff check .
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 
 # Benchmarks compare against reference implementations (netcal, nuscenes-devkit) that are
 # installed only into their own environment, never into .venv.

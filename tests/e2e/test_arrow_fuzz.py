@@ -40,4 +40,5 @@ def test_mutated_arrow_streams_never_crash_leak_or_stall(fuzz_server, dump):
     assert not report.failures, "\n".join(report.failures[:20])
     assert report.cases >= min(CASES, 100), report.summary()
     assert report.statuses[200] > 0 and sum(report.statuses.values()) == report.cases
-    assert report.health_p99_ms() < 100, report.summary()
+    # /healthz latency is printed in the summary (a figure, not a threshold: no wall-clock
+    # limits in tests); the stall itself is tested relatively in test_arrow_bombs.

@@ -11,8 +11,9 @@ the input files it provides (`INPUTS`) and the commands it skips (`SKIPPED`). A 
 longer splits into such steps fails the test: it never skips. Every curl must exit 0 with an
 HTTP status < 400 and a JSON body (except `NON_JSON` routes). A fit job is watched until it
 lands, and must succeed. The tour's step 1 runs again once step 4's version is active (it
-was once a 422 then) and at the very end. Every README step must answer within
-`README_STEP_S` seconds (the tour's promise on 2 cores); their times are printed.
+was once a 422 then) and at the very end. Each README step's time is printed (the tour
+promises seconds per step on 2 cores; a figure, not a threshold: no wall-clock limits in
+tests).
 
 Then every example of the OpenAPI schema's JSON request bodies (the body schemas' `examples`,
 the examples of their parts swapped into the first body, and parameter examples) is sent and
@@ -49,8 +50,6 @@ TOUR_HEADING = "## A 5-minute tour"
 SHELL_LANGS = ("sh", "bash", "shell")
 NUSC_SAMPLE_FRAMES = 10     # results_nusc.json: the first frames of val.npz (under 8 MiB)
 SHIPPED_DUMP = ROOT / "detectors" / "data" / "lidar_val.npz"
-#: The most seconds one README tour step may take (a job's watch is one step per poll).
-README_STEP_S = 15.0
 
 
 @dataclass
@@ -393,7 +392,6 @@ def test_readme_tour_and_api_examples_run_in_order(fresh: BootstrapServer, clien
         took = time.monotonic() - start
         if step.where.startswith("README.md"):
             timings.append(f"{took:6.2f} s  {step.where}: {step.text.splitlines()[0][:80]}")
-            assert took <= README_STEP_S, timings[-1]
         if step.kind != "curl":
             continue
         route = step.route

