@@ -48,8 +48,10 @@ def _plain_version(value: Any) -> Any:
     return value
 
 
-Version = Annotated[int, BeforeValidator(_plain_version),
-                    Field(ge=1, le=MAX_VERSION, description="Version number (1, 2, ...).")]
+# Field before the validator: so the JSON schema says minimum / maximum (after it, pydantic
+# writes the non-standard `ge` / `le` keys, and clients see any integer as valid).
+Version = Annotated[int, Field(ge=1, le=MAX_VERSION, description="Version number (1, 2, ...)."),
+                    BeforeValidator(_plain_version)]
 
 #: An alias: like a name but starting with a letter or `_` (so `name@2` is always a version).
 ALIAS_PATTERN = r"^[A-Za-z_][A-Za-z0-9_.\-]*$"
