@@ -19,8 +19,8 @@ import sys
 import zipfile
 from collections.abc import Sequence
 
-REGISTRARS = ("app.cli_calib", "app.cli_serve", "app.cli_export", "detectors.cli",
-              "detectors.report.cli")
+REGISTRARS = ("app.cli_calib", "app.cli_convert", "app.cli_serve", "app.cli_export",
+              "detectors.cli", "detectors.report.cli")
 USAGE_ERRORS = (ValueError, OSError, zipfile.BadZipFile, pickle.UnpicklingError)
 
 
