@@ -113,8 +113,9 @@ def ensure_default_profile(settings: Settings, say: Say = print,
                               dump_sha256=stored.sha256)
         record = store.add_profile(settings.default_profile, profile.to_json(),
                                    dump_sha256=stored.sha256, activate=True)
-        say(f"detcal: stored profile {record.ref} (T = {profile.temperature:.3f}, "
-            f"pooled k = {profile.pooled_k:.4g})")
+        say(f"detcal: stored profile {record.ref}: scores {profile.score_method}, covariance "
+            f"{profile.cov_method}, regions {profile.region_method} (T = "
+            f"{profile.temperature:.3f}, pooled k = {profile.pooled_k:.4g})")
         return record
     finally:
         store.close()

@@ -27,7 +27,10 @@ def test_default_profile_from_the_shipped_lidar_dump(tmp_path):
         store.close()
     assert profile.cov_source == "layers" and profile.temperature > 0
     assert all(k >= 0 for k in profile.depth_k.values())
-    assert any("stored profile lidar@1" in line for line in said)
+    stored = [line for line in said if "stored profile lidar@1" in line]
+    # make run says which method each stage chose, as `detcal fit` does
+    assert stored and f"scores {profile.score_method}, covariance {profile.cov_method}, " \
+        f"regions {profile.region_method}" in stored[0]
     # a second start finds the profile and fits nothing
     assert ensure_default_profile(settings, say=said.append) is None
 
