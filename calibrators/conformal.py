@@ -32,6 +32,7 @@ import numpy as np
 from calibrators.checks import as_float_array, check_length
 from calibrators.depth import _check_distances, _class_codes
 from calibrators.exceptions import FieldError, check_fitted
+from calibrators.json_safe import to_jsonable
 from calibrators.levels import (
     DEFAULT_DISTANCE_EDGES,
     check_distance_edges,
@@ -39,7 +40,6 @@ from calibrators.levels import (
     distance_bins,
 )
 from calibrators.metrics._common import check_n_bins, check_nonempty
-from calibrators.vocab import to_jsonable
 
 REASONS = ("own", "merged_bins", "pooled_classes", "global")
 _TAIL_STEP, _BULK_STEP = 0.03, 0.004  # rank spacing: of the tail mass above, of n

@@ -52,6 +52,7 @@ import numpy as np
 
 from calibrators.checks import check_finite
 from calibrators.exceptions import FieldError
+from calibrators.json_safe import to_jsonable
 from calibrators.scores import probabilities_logits
 from calibrators.vocab import BOX_FIELDS
 
@@ -329,7 +330,4 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
 
 def unbounded_none(values: np.ndarray, unbounded: np.ndarray) -> list[float | None]:
     """`values [N]` as a list with None where `unbounded [N]` (JSON has no infinity)."""
-    out: list[float | None] = values.tolist()
-    for i in np.flatnonzero(unbounded).tolist():
-        out[i] = None
-    return out
+    return to_jsonable(np.where(unbounded, np.inf, np.asarray(values, dtype=np.float64)))

@@ -24,6 +24,7 @@ import numpy as np
 from calibrators._ap import calc_ap, calc_tp, pr_curve, scale_iou, yaw_diff
 from calibrators.checks import as_float_array, check_length
 from calibrators.dump import Dump
+from calibrators.json_safe import to_jsonable
 from calibrators.matching import (
     DEFAULT_CLASS_RANGE,
     MatchResult,
@@ -33,7 +34,6 @@ from calibrators.matching import (
     greedy_match,
     in_range,
 )
-from calibrators.vocab import to_jsonable
 
 TP_METRICS = ("trans_err", "scale_err", "orient_err", "vel_err")
 # Errors the devkit does not score for a class (its NuScenesEval.evaluate).

@@ -3,7 +3,6 @@ names the key. Used by `calibrators.profile` only."""
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from typing import Any
@@ -12,6 +11,7 @@ import numpy as np
 
 from calibrators.conformal import ConformalRegions
 from calibrators.exceptions import FieldError
+from calibrators.json_safe import to_jsonable
 from calibrators.score_calibration import score_calibrator_from_dict
 from calibrators.vocab import COV_METHODS, COV_SOURCES, REGION_METHODS, SCORE_METHODS
 
@@ -105,18 +105,12 @@ def matching(value: Any) -> dict[str, Any]:
 
 
 def jsonable(key: str, value: Any) -> dict:
-    """A deep copy of `value` in plain JSON types (numpy scalars/arrays converted, tuples to
-    lists); non-finite numbers are refused so the profile is strict JSON."""
+    """A deep copy of the object `value` in plain JSON types (`calibrators.json_safe`);
+    non-finite numbers and values of no JSON type are refused so the profile is strict JSON."""
     if not isinstance(value, dict):
         raise ValueError(f"{key} must be an object, got {type(value).__name__}")
-
-    def default(obj: Any) -> Any:
-        if isinstance(obj, np.generic | np.ndarray):
-            return obj.tolist()
-        raise TypeError(f"{type(obj).__name__} is not JSON-able")
-
     try:
-        return json.loads(json.dumps(value, allow_nan=False, default=default))
+        return to_jsonable(value, strict=True)
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{key} must hold JSON-able values with finite numbers: {exc}"
                          ) from None

@@ -35,7 +35,7 @@ from calibrators.depth import (
 )
 from calibrators.depth_nll import _Binned, _binned, _fit_k, _Terms
 from calibrators.exceptions import FieldError, check_fitted
-from calibrators.vocab import to_jsonable
+from calibrators.json_safe import to_jsonable
 
 
 class ShrinkageDepthScaler:

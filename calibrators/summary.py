@@ -48,6 +48,7 @@ from calibrators import metrics
 from calibrators.apply import apply_profile, check_profile_fits
 from calibrators.dump import Dump
 from calibrators.fit_regions import xy_mahalanobis
+from calibrators.json_safe import to_jsonable
 from calibrators.levels import DEFAULT_DISTANCE_EDGES, gaussian_radius
 from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
 from calibrators.matching import MatchResult
@@ -313,10 +314,8 @@ def _plots(dump: Dump, tp: np.ndarray, res: np.ndarray, dims: tuple[str, ...], b
 
 
 def _finite(value: float | None) -> float | None:
-    if value is None:
-        return None
-    v = float(value)
-    return v if np.isfinite(v) else None
+    """`value` as a float, None for None or a non-finite number (`to_jsonable`)."""
+    return None if value is None else to_jsonable(float(value))
 
 
 def format_table(summary: Summary | ProfileReport) -> str:

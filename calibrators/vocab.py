@@ -1,5 +1,6 @@
 """The library's vocabulary, defined once: box fields, covariance sources, score modes,
-angle wrapping, quaternion yaw, JSON-safe values and the installed version.
+angle wrapping, quaternion yaw and the installed version (JSON-safe values:
+`calibrators.json_safe`).
 
 Every other module (and `detectors/`, `app/`) imports these names instead of spelling them
 again.
@@ -9,7 +10,6 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
-from typing import Any
 
 import numpy as np
 
@@ -70,24 +70,6 @@ def quaternion_yaw(w: float, x: float, y: float, z: float) -> float:
     if w * w + x * x + y * y + z * z == 0:
         raise ValueError("rotation is the zero quaternion")
     return float(math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z))
-
-
-def to_jsonable(value: Any) -> Any:
-    """`value` in plain JSON types: numpy scalars and arrays to Python numbers and lists,
-    tuples to lists, dict keys to strings, and non-finite floats to None (strict JSON)."""
-    if isinstance(value, dict):
-        return {str(k): to_jsonable(v) for k, v in value.items()}
-    if isinstance(value, np.ndarray):
-        return to_jsonable(value.tolist())
-    if isinstance(value, list | tuple):
-        return [to_jsonable(v) for v in value]
-    if isinstance(value, bool | np.bool_):
-        return bool(value)
-    if isinstance(value, float | np.floating):
-        return float(value) if math.isfinite(value) else None
-    if isinstance(value, np.integer):
-        return int(value)
-    return value
 
 
 def detcal_version() -> str:

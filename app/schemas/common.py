@@ -7,7 +7,6 @@ and a JSON float is never read as an integer (`1.0`)."""
 
 from __future__ import annotations
 
-import math
 import re
 from datetime import datetime
 from typing import Annotated, Any, NamedTuple
@@ -21,6 +20,8 @@ from pydantic import (
     TypeAdapter,
     ValidationError,
 )
+
+from calibrators.json_safe import to_jsonable
 
 Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 Probability = Annotated[float, Strict(), Field(ge=0.0, le=1.0, allow_inf_nan=False)]
@@ -123,32 +124,8 @@ ProfileRefText = Annotated[str, Field(
     AfterValidator(_profile_ref)]
 
 
-def non_finite_path(value: Any, path: tuple[str | int, ...] = ()
-                    ) -> tuple[tuple[str | int, ...], float] | None:
-    """The path and value of the first NaN or infinity inside a parsed JSON value, or None.
-    (The JSON parser bounds the nesting depth, so the recursion is bounded too.)"""
-    if isinstance(value, float):
-        return None if math.isfinite(value) else (path, value)
-    if isinstance(value, dict):
-        items: Any = value.items()
-    elif isinstance(value, list):
-        items = enumerate(value)
-    else:
-        return None
-    for key, item in items:
-        found = non_finite_path(item, (*path, key))
-        if found is not None:
-            return found
-    return None
-
-
 def _finite_json(value: Any) -> Any:
-    found = non_finite_path(value)
-    if found is not None:
-        where, x = "".join(f"[{k!r}]" for k in found[0]), found[1]
-        number = "NaN" if math.isnan(x) else "Infinity" if x > 0 else "-Infinity"
-        raise ValueError(f"{'at ' + where + ': ' if where else ''}{number} is not a finite "
-                         f"number (JSON has none; a number beyond the float range is one)")
+    to_jsonable(value, strict=True)   # a ValueError naming the first NaN or infinity
     return value
 
 

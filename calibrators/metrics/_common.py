@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from calibrators.checks import as_float_array, check_length, check_probabilities
+from calibrators.json_safe import to_jsonable
 
 
 def check_n_bins(name: str, value: object, minimum: int = 1) -> int:
@@ -72,26 +73,8 @@ def calibration_bins(conf: np.ndarray, hit: np.ndarray, n_bins: int
     return edges, count, conf_sum, hit_sum
 
 
-def jsonable(value: Any) -> Any:
-    """Lists / floats / ints / None (for NaN and Inf) from arrays and numpy scalars."""
-    if isinstance(value, np.ndarray):
-        return jsonable(value.tolist())
-    if isinstance(value, (list, tuple)):
-        return [jsonable(v) for v in value]
-    if isinstance(value, dict):
-        return {str(k): jsonable(v) for k, v in value.items()}
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, numbers.Integral):
-        return int(value)
-    if isinstance(value, numbers.Real):
-        v = float(value)
-        return v if np.isfinite(v) else None
-    return value
-
-
 class ResultMixin:
     """`to_dict()` for the frozen result dataclasses: JSON-able, NaN becomes None."""
 
     def to_dict(self) -> dict[str, Any]:
-        return {f.name: jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}
+        return {f.name: to_jsonable(getattr(self, f.name)) for f in dataclasses.fields(self)}

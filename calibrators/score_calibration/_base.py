@@ -20,8 +20,8 @@ from calibrators.checks import (
 )
 from calibrators.depth import _check_distances, _check_min_samples
 from calibrators.exceptions import FieldError, check_fitted
+from calibrators.json_safe import to_jsonable
 from calibrators.metrics._common import as_binary, check_n_bins, check_nonempty
-from calibrators.vocab import to_jsonable
 
 
 class ClasswiseCalibrator:
