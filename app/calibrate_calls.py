@@ -24,9 +24,10 @@ from app.cache import ProfileCache
 from app.calibration import calibrate_frames, calibrate_results
 from app.errors import RequestError, error_body
 from app.profile_match import check_classes
-from app.schemas.calibrate import DEFAULT_LEVELS, CalibrateRequest
+from app.schemas.calibrate import CalibrateRequest
 from app.schemas.nuscenes import NuScenesResults
 from app.store import NotFoundError
+from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.exceptions import FieldError
 from calibrators.io.arrow_batch import (
     ARROW_STREAM,
@@ -50,7 +51,7 @@ class CalibrateCall:
     kind: CallKind
     body: bytes
     profile: str | None = None
-    ellipse_confidence: float | None = None    # None: 0.95
+    ellipse_confidence: float | None = None    # None: ELLIPSE_CONFIDENCE
     levels: tuple[float, ...] | None = None    # None: DEFAULT_LEVELS
 
 
@@ -158,7 +159,7 @@ def _where(field: str, from_query: set[str]) -> tuple[str, str]:
 
 
 def _confidence(call: CalibrateCall) -> float:
-    return 0.95 if call.ellipse_confidence is None else call.ellipse_confidence
+    return ELLIPSE_CONFIDENCE if call.ellipse_confidence is None else call.ellipse_confidence
 
 
 def _with_query(body: CalibrateRequest, call: CalibrateCall) -> CalibrateRequest:

@@ -17,8 +17,9 @@ from typing import Any
 
 from app.cache import LoadedProfile
 from app.errors import RequestError
-from app.schemas.calibrate import DEFAULT_LEVELS, FrameIn
+from app.schemas.calibrate import FrameIn
 from app.schemas.nuscenes import NuScenesResults
+from calibrators.defaults import DEFAULT_LEVELS
 from calibrators.detections import WIRE_NAMES, Detections, detections_from_records
 from calibrators.exceptions import FieldError
 from calibrators.io.nuscenes_batch import calibrated_document, detections_from_nuscenes

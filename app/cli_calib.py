@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import Any
 
 from app.cli import CliError
+from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
 from calibrators.options import FitOptions
 
 #: Ellipse levels `detcal calibrate` writes when --levels is not given (as the service's).
-DEFAULT_LEVELS = (0.95,)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -49,7 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                     "after the profile if one is given).")
     add_dump_input(ev)
     ev.add_argument("--profile", help="profile JSON to apply")
-    ev.add_argument("--threshold", type=float, default=2.0,
+    ev.add_argument("--threshold", type=float, default=MATCH_THRESHOLD,
                     help="matching distance for the calibration metrics (default: %(default)s)")
     ev.add_argument("--json", action="store_true", help="print one JSON document")
     ev.set_defaults(func=run_evaluate)
@@ -205,7 +205,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
         batches, meta = _dump_batches(path, profile), None
     served = [_served(batch.calibrate, profile=profile, levels=levels) for batch in batches]
     doc = calibrated_document(served, {"profile": str(args.profile), "levels": levels,
-                                       "ellipse_confidence": 0.95}, meta)
+                                       "ellipse_confidence": ELLIPSE_CONFIDENCE}, meta)
     _write_text(args.out, json.dumps(doc, allow_nan=False))
     n = sum(map(len, served))
     print(f"detcal calibrate: {n} detections in {len(doc['results'])} frames calibrated with "

@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any
 
 from app.cli import CliError
-from app.cli_calib import DEFAULT_LEVELS, load_profile
+from app.cli_calib import load_profile
+from calibrators.defaults import DEFAULT_LEVELS
 from calibrators.vocab import COV_SOURCES
 
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 from calibrators.detections import Detections, source_arrays
 from calibrators.dump import Dump
 from calibrators.matched import resolve_cov_source
@@ -28,7 +29,7 @@ def check_profile_fits(dump: Dump, profile: CalibrationProfile) -> None:
 
 
 def apply_profile(dump: Dump, profile: CalibrationProfile, *,
-                  ellipse_confidence: float = 0.95,
+                  ellipse_confidence: float = ELLIPSE_CONFIDENCE,
                   levels: Sequence[float] | None = None) -> CalibratedDetections:
     """Calibrate the N final-layer detections of `dump` with `profile` (arrays [N], in the
     dump's detection order), with regions at `levels`; see `calibrators.serving` for the

@@ -1,4 +1,5 @@
-"""Covariance sources: the spread of a query's box across the decoder layers (thesis 4.1.4).
+"""Covariance sources: the spread of a query's box across the decoder layers (thesis 4.1.4),
+and the one dispatch from a source name to the arrays it reads and the Σ it gives.
 
 A DETR-style decoder refines each query's box layer by layer; the sample covariance of the
 `L` per-layer boxes over the chosen dims is a cheap uncertainty estimate. `yaw` is an angle:
@@ -15,6 +16,7 @@ import numpy as np
 
 from calibrators.checks import as_float_array
 from calibrators.exceptions import FieldError
+from calibrators.hypotheses import hypotheses_covariance
 from calibrators.vocab import BOX_FIELDS, BOX_INDEX, check_dims, wrap_angle
 
 
@@ -44,3 +46,31 @@ def layer_spread(layer_boxes: np.ndarray, dims: Sequence[str] = ("x", "y")) -> n
 def dim_indices(dims: Sequence[str]) -> list[int]:
     """Column of each name of `dims` in a 9-field box; distinct known names are required."""
     return [BOX_INDEX[name] for name in check_dims(dims)]
+
+
+#: The arrays each covariance source reads: keyword of `CalibrationProfile.calibrate` ->
+#: the `Dump` attribute holding it (`auto` is resolved before, `none` reads nothing).
+SOURCE_ARRAYS: dict[str, dict[str, str]] = {
+    "given": {"covariances": "det_cov"},
+    "layers": {"layer_boxes": "det_boxes"},
+    "hypotheses": {"hyp_boxes": "det_hyp_boxes", "hyp_scores": "det_hyp_scores"},
+    "none": {},
+}
+
+
+def source_covariance(source: str, dims: Sequence[str], *,
+                      covariances: np.ndarray | None = None,
+                      layer_boxes: np.ndarray | None = None,
+                      hyp_boxes: np.ndarray | None = None,
+                      hyp_scores: np.ndarray | None = None) -> np.ndarray | None:
+    """`[N, D, D]` uncalibrated Σ over `dims` from covariance `source`: the given
+    `covariances [N, D, D]`, the spread of `layer_boxes [N, L, 9]` (`layer_spread`), the
+    spread of the box hypotheses `hyp_boxes [N, H, 9]` weighted by `hyp_scores [N, H]`
+    (`hypotheses_covariance`), or None (`none`)."""
+    if source == "given":
+        return covariances
+    if source == "layers":
+        return layer_spread(layer_boxes, dims)
+    if source == "hypotheses":
+        return hypotheses_covariance(hyp_boxes, hyp_scores, dims)
+    return None

@@ -51,6 +51,8 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibrators.checks import check_finite
+from calibrators.covariance import SOURCE_ARRAYS
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 from calibrators.exceptions import FieldError
 from calibrators.json_safe import to_jsonable
 from calibrators.scores import probabilities_logits
@@ -146,7 +148,8 @@ class Detections:
         """The keyword arguments of `CalibrationProfile.calibrate` (the arrays given)."""
         return {k: getattr(self, k) for k in _CALIBRATE_ARGS if getattr(self, k) is not None}
 
-    def calibrate(self, profile: CalibrationProfile, *, ellipse_confidence: float = 0.95,
+    def calibrate(self, profile: CalibrationProfile, *,
+                  ellipse_confidence: float = ELLIPSE_CONFIDENCE,
                   levels: Sequence[float] | None = None) -> CalibratedDetections:
         """These detections calibrated with `profile` (`calibrators.serving`), in this order;
         the result keeps this batch (`.detections`) for its identity and boxes."""
@@ -158,14 +161,9 @@ class Detections:
 def source_arrays(dump: Dump, source: str) -> dict[str, np.ndarray | None]:
     """The keyword arguments of `CalibrationProfile.calibrate` that carry covariance `source`
     from `dump`: `covariances [N, D, D]` (given), `layer_boxes [N, L, 9]` (layers),
-    `hyp_boxes [N, H, 9]` and `hyp_scores [N, H]` (hypotheses), nothing (none)."""
-    if source == "given":
-        return {"covariances": dump.det_cov}
-    if source == "layers":
-        return {"layer_boxes": dump.det_boxes}
-    if source == "hypotheses":
-        return {"hyp_boxes": dump.det_hyp_boxes, "hyp_scores": dump.det_hyp_scores}
-    return {}
+    `hyp_boxes [N, H, 9]` and `hyp_scores [N, H]` (hypotheses), nothing (none); the table
+    is `calibrators.covariance.SOURCE_ARRAYS`."""
+    return {name: getattr(dump, attr) for name, attr in SOURCE_ARRAYS.get(source, {}).items()}
 
 
 # -- JSON records ----------------------------------------------------------------------------

@@ -14,6 +14,7 @@ from typing import NamedTuple
 import numpy as np
 
 from calibrators.checks import as_float_array, check_covariances
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 
 
 class Ellipse(NamedTuple):
@@ -36,7 +37,7 @@ def chi2_2_quantile(confidence: float) -> float:
     return float(-2.0 * np.log1p(-p))
 
 
-def ellipse(cov: np.ndarray, confidence: float = 0.95) -> Ellipse:
+def ellipse(cov: np.ndarray, confidence: float = ELLIPSE_CONFIDENCE) -> Ellipse:
     """Confidence ellipse of `cov [N, 2, 2]` (arrays `[N]`) or `cov [2, 2]` (floats)."""
     q = chi2_2_quantile(confidence)
     single, (high, low, angle) = _eigen(cov)

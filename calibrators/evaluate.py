@@ -23,6 +23,7 @@ import numpy as np
 
 from calibrators._ap import calc_ap, calc_tp, pr_curve, scale_iou, yaw_diff
 from calibrators.checks import as_float_array, check_length
+from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.dump import Dump
 from calibrators.json_safe import to_jsonable
 from calibrators.matching import (
@@ -78,7 +79,7 @@ class EvaluationReport:
 def evaluate(dump: Dump, thresholds: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
              class_range: Mapping[str, float] | None = DEFAULT_CLASS_RANGE,
              scores: np.ndarray | None = None, max_boxes_per_frame: int | None = 500,
-             tp_threshold: float = 2.0) -> EvaluationReport:
+             tp_threshold: float = MATCH_THRESHOLD) -> EvaluationReport:
     """Evaluate the final-layer detections of `dump` against its ground truth.
 
     `scores` [N] optionally replaces the dump's raw scores (e.g. calibrated ones); labels are

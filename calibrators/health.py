@@ -30,6 +30,7 @@ import numpy as np
 from scipy import stats
 
 from calibrators.apply import source_arrays
+from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.fit_regions import xy_mahalanobis
@@ -222,7 +223,7 @@ def profile_edges(profile: CalibrationProfile, source: str | None = None) -> np.
 
 
 def collect_evidence(dump: Dump, profile: CalibrationProfile, *,
-                     levels: Sequence[float] = HEALTH_LEVELS, threshold: float = 2.0,
+                     levels: Sequence[float] = HEALTH_LEVELS, threshold: float = MATCH_THRESHOLD,
                      n_bins: int = N_SCORE_BINS) -> FrameEvidence:
     """Match `dump` to its ground truth, calibrate it with `profile` and sum, per frame, what
     health needs (module docstring). Levels a region group cannot serve count as covered

@@ -18,9 +18,10 @@ from dataclasses import replace
 
 import numpy as np
 
-from calibrators.covariance import layer_spread
+from calibrators.covariance import source_covariance
+from calibrators.defaults import MATCH_THRESHOLD
+from calibrators.detections import source_arrays
 from calibrators.dump import Dump
-from calibrators.hypotheses import hypotheses_covariance
 from calibrators.matching import MatchResult, match
 from calibrators.modulation import modulate_logits
 from calibrators.options import OptionError
@@ -65,17 +66,12 @@ def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> st
 
 
 def raw_covariances(dump: Dump, source: str, dims: tuple[str, ...]) -> np.ndarray | None:
-    """`[N, D, D]` uncalibrated covariance of every detection from `source`, or None (`none`)."""
-    if source == "given":
-        return dump.det_cov
-    if source == "layers":
-        return layer_spread(dump.det_boxes, dims)
-    if source == "hypotheses":
-        return hypotheses_covariance(dump.det_hyp_boxes, dump.det_hyp_scores, dims)
-    return None
+    """`[N, D, D]` uncalibrated covariance of every detection from `source`, or None (`none`):
+    `source_covariance` of the dump's `source_arrays`, as a served call computes it."""
+    return source_covariance(source, dims, **source_arrays(dump, source))
 
 
-def match_dump(dump: Dump, threshold: float = 2.0) -> MatchResult:
+def match_dump(dump: Dump, threshold: float = MATCH_THRESHOLD) -> MatchResult:
     """nuScenes matching of the final-layer detections to the ground truth at `threshold` m.
 
     No class range filter: a profile must calibrate every detection the detector emits,

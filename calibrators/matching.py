@@ -28,6 +28,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from calibrators.checks import as_float_array, as_int_array, check_length, check_positive
+from calibrators.defaults import MATCH_THRESHOLD
 
 # nuScenes `detection_cvpr_2019` class ranges in metres (BEV distance from the ego).
 DEFAULT_CLASS_RANGE: Mapping[str, float] = {
@@ -68,7 +69,7 @@ class Candidates(NamedTuple):
 
 def match(det_frame: np.ndarray, det_labels: np.ndarray, det_scores: np.ndarray,
           det_xy: np.ndarray, gt_frame: np.ndarray, gt_labels: np.ndarray, gt_xy: np.ndarray,
-          threshold: float = 2.0) -> MatchResult:
+          threshold: float = MATCH_THRESHOLD) -> MatchResult:
     """Match detections to ground truth by the nuScenes devkit rule (see the module docstring).
 
     det_frame [N] int, det_labels [N] int, det_scores [N] float, det_xy [N, 2] float;

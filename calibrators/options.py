@@ -12,6 +12,7 @@ import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
+from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.exceptions import FieldError
 from calibrators.levels import check_distance_edges
 from calibrators.vocab import (
@@ -72,7 +73,7 @@ class FitOptions:
     the covariance and region stages for the other covariance sources the dump allows.
     """
 
-    threshold: float = _opt(2.0, "matching distance in m", float)
+    threshold: float = _opt(MATCH_THRESHOLD, "matching distance in m", float)
     dims: tuple[str, ...] = _opt(("x", "y"), "regression box fields, comma separated", str)
     cov_source: str = _opt("auto", "raw covariance: the dump's det_cov (given), the spread "
                            "across decoder layers (layers), the spread of the group heads' box "

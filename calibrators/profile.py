@@ -24,6 +24,7 @@ import numpy as np
 
 from calibrators import profile_fields as pf
 from calibrators.covariance import dim_indices
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 from calibrators.serving import CalibratedDetections, calibrate_detections
 from calibrators.vocab import COV_SOURCES, SCORE_MODES, detcal_version
 
@@ -208,7 +209,7 @@ class CalibrationProfile:
                   labels: np.ndarray | None = None, boxes: np.ndarray | None = None,
                   covariances: np.ndarray | None = None,
                   layer_boxes: np.ndarray | None = None, ego_xy: np.ndarray | None = None,
-                  ellipse_confidence: float = 0.95,
+                  ellipse_confidence: float = ELLIPSE_CONFIDENCE,
                   layer_logits: np.ndarray | None = None,
                   levels: np.ndarray | list[float] | None = None,
                   hyp_boxes: np.ndarray | None = None,

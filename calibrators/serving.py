@@ -38,11 +38,12 @@ from calibrators.checks import (
     check_length,
     check_probabilities,
 )
-from calibrators.covariance import layer_spread
+from calibrators.covariance import source_covariance
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 from calibrators.depth import add_depth_term
 from calibrators.ellipse import Ellipse, ellipse, radius_ellipses
 from calibrators.exceptions import FieldError
-from calibrators.hypotheses import check_hypotheses, hypotheses_covariance
+from calibrators.hypotheses import check_hypotheses
 from calibrators.levels import MAX_LEVELS, check_levels, gaussian_radius
 from calibrators.modulation import modulate_logits
 from calibrators.scores import (
@@ -94,7 +95,7 @@ class CalibratedDetections:
     cov_source: str | None = None
     classes: tuple[str, ...] = ()
     cov_dims: tuple[str, ...] = ()
-    ellipse_confidence: float = 0.95
+    ellipse_confidence: float = ELLIPSE_CONFIDENCE
     detections: Detections | None = None
 
     def __len__(self) -> int:
@@ -127,7 +128,8 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
                          scores: np.ndarray | None = None, labels: np.ndarray | None = None,
                          boxes: np.ndarray | None = None, covariances: np.ndarray | None = None,
                          layer_boxes: np.ndarray | None = None,
-                         ego_xy: np.ndarray | None = None, ellipse_confidence: float = 0.95,
+                         ego_xy: np.ndarray | None = None,
+                         ellipse_confidence: float = ELLIPSE_CONFIDENCE,
                          layer_logits: np.ndarray | None = None,
                          levels: Sequence[float] | np.ndarray | None = None,
                          hyp_boxes: np.ndarray | None = None,
@@ -294,9 +296,10 @@ def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None
                                   f"and their group scores go together")
     if hyp_boxes is not None and "hypotheses" in stages:
         boxes, scores = check_hypotheses(hyp_boxes, hyp_scores, n)
-        return stages["hypotheses"], hypotheses_covariance(boxes, scores, profile.cov_dims)
+        return stages["hypotheses"], source_covariance("hypotheses", profile.cov_dims,
+                                                        hyp_boxes=boxes, hyp_scores=scores)
     if layer_boxes is not None and "layers" in stages:
-        spread = layer_spread(layer_boxes, profile.cov_dims)
+        spread = source_covariance("layers", profile.cov_dims, layer_boxes=layer_boxes)
         check_length("layer_boxes", spread, n, "boxes")
         return stages["layers"], spread
     if "none" in stages:

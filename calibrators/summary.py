@@ -46,6 +46,7 @@ from scipy.special import log_softmax
 
 from calibrators import metrics
 from calibrators.apply import apply_profile, check_profile_fits
+from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.dump import Dump
 from calibrators.fit_regions import xy_mahalanobis
 from calibrators.json_safe import to_jsonable
@@ -68,7 +69,7 @@ _CLASS_METRICS = ("ece", "mce", "dece", "nll", "brier")
 
 
 def summarize(dump: Dump, profile: CalibrationProfile | None = None, *,
-              threshold: float = 2.0, dims: str | Sequence[str] = ("x", "y"),
+              threshold: float = MATCH_THRESHOLD, dims: str | Sequence[str] = ("x", "y"),
               cov_source: str = "auto", match: MatchResult | None = None,
               max_points: int = 2000, seed: int = 0,
               levels: Sequence[float] = SUMMARY_LEVELS) -> Summary:

@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from calibrators.checks import check_choice
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 from detectors.infer import detect
 from detectors.model.detector import Detector
 from detectors.panels import pyplot
@@ -28,7 +29,7 @@ SHOW_BEV = BevStyle(point_color=None, point_size=(1.0, 4.0), point_alpha=0.6, gt
 
 def render_frame(model: Detector, seed: int, out: str | Path, min_score: float = 0.3,
                  cov_source: str = "layers", profile: object | None = None,
-                 confidence: float = 0.95, extent: float | None = None) -> Path:
+                 confidence: float = ELLIPSE_CONFIDENCE, extent: float | None = None) -> Path:
     """Draw scene `seed` as seen by `model`'s sensor into the PNG `out`; `cov_source` is
     one of `detectors.vocab.DETECTOR_COV_SOURCES`."""
     from calibrators import ellipse

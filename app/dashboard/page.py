@@ -18,6 +18,7 @@ from app.cache import LoadedProfile
 from app.dashboard.intervals import MIN_TPS, RULE, proportion_interval, too_small
 from app.store import JobRecord, NameSummary
 from calibrators import ProfileReport, Summary
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 from calibrators.summary_types import Pair
 
 _CSS = """
@@ -211,7 +212,7 @@ def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) 
         out = detectors.run(sensor, seed, None, min_score=0.3)
         frame = FrameIn.model_construct(frame_id="bev", ego_translation=None,
                                         detections=detections_of(out, loaded))
-        rows = calibrate_frames(loaded, [frame], 0.95)[0]
+        rows = calibrate_frames(loaded, [frame], ELLIPSE_CONFIDENCE)[0]
     except (DetectorUnavailable, RequestError, ValueError, OSError) as exc:
         msg = exc.msg if isinstance(exc, RequestError) else str(exc)
         return f"<p class='note'>No bird's-eye view for profile {_e(loaded.record.ref)}: " \
@@ -219,7 +220,7 @@ def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) 
     boxes = out.layer_boxes[:, -1] if len(out.layer_boxes) else np.zeros((0, 9))
     raw_el = None
     if len(boxes) and out.layer_boxes.shape[1] >= 2:
-        e = ellipse(layer_spread(out.layer_boxes, ("x", "y")), 0.95)
+        e = ellipse(layer_spread(out.layer_boxes, ("x", "y")), ELLIPSE_CONFIDENCE)
         raw_el = (e.semi_major, e.semi_minor, e.angle)
     cal_el = None
     if rows and rows[0]["ellipse"] is not None:

@@ -14,7 +14,6 @@ from app.media import accept, body_media
 from app.offload import CalibrateRunner
 from app.prometheus import ServiceMetrics
 from app.schemas.calibrate import (
-    DEFAULT_LEVELS,
     LEVELS_SCHEMA,
     LEVELS_TEXT,
     CalibrateRequest,
@@ -23,6 +22,7 @@ from app.schemas.calibrate import (
 from app.schemas.calibrate_query import CalibrateQuery
 from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.nuscenes import NuScenesResults
+from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.io.arrow_batch import ARROW_STREAM
 
 router = APIRouter(prefix="/v1", tags=["calibrate"],
@@ -75,7 +75,7 @@ async def calibrate_nuscenes(
     request: Request, calibrator: CalibratorDep, metrics: MetricsDep,
     profile: Annotated[ProfileRefText | None, Query(description="`name` or `name@version`")
                       ] = None,
-    ellipse_confidence: Annotated[float, Query(gt=0.0, lt=1.0)] = 0.95,
+    ellipse_confidence: Annotated[float, Query(gt=0.0, lt=1.0)] = ELLIPSE_CONFIDENCE,
     levels: Annotated[list[float] | None, Query(
         json_schema_extra=LEVELS_SCHEMA,
         description=f"{LEVELS_TEXT} Repeat it: `?levels=0.5&levels=0.9`; default "

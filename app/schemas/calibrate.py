@@ -16,6 +16,7 @@ from pydantic import (
 )
 
 from app.schemas.common import Finite, Probability, ProfileRef, ProfileRefText
+from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.levels import MAX_LEVELS
 from calibrators.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
 
@@ -25,7 +26,6 @@ _BOX_WIDTHS = (len(BOX_FIELDS), BOX_INDEX["vx"])
 _BOX_TEXT = " ".join(BOX_FIELDS)
 
 #: The levels served when a request names none.
-DEFAULT_LEVELS = (0.95,)
 #: Docs of the `levels` field; the rule itself is `calibrators.levels.check_levels`.
 #: The schema of `levels` as the library checks it (`calibrators.levels.check_levels`):
 #: published in OpenAPI, validated by the library alone.
@@ -177,7 +177,7 @@ class CalibrateRequest(BaseModel):
     profile: ProfileRefText | None = Field(
         None, description="`name` (its active version), `name@version` or `name@alias`; "
                           "default: the configured default name.")
-    ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
+    ellipse_confidence: float = Field(ELLIPSE_CONFIDENCE, gt=0.0, lt=1.0)
     levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT,
                                 json_schema_extra=LEVELS_SCHEMA)
     classes: list[str] | None = Field(
@@ -270,7 +270,7 @@ class DetectRequest(BaseModel):
         None, description="`name`, `name@version` or `name@alias`; default: the configured "
                           "default name.")
     min_score: float = Field(0.3, ge=0.0, le=1.0, description="Keep raw scores >= this.")
-    ellipse_confidence: float = Field(0.95, gt=0.0, lt=1.0)
+    ellipse_confidence: float = Field(ELLIPSE_CONFIDENCE, gt=0.0, lt=1.0)
     levels: list[float] = Field(list(DEFAULT_LEVELS), description=LEVELS_TEXT,
                                 json_schema_extra=LEVELS_SCHEMA)
 

@@ -7,6 +7,7 @@ from pydantic import BaseModel, Field
 
 from app.schemas.calibrate import LEVELS_SCHEMA, LEVELS_TEXT
 from app.schemas.common import ProfileRefText
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 
 _FOR_ARROW = "For Arrow bodies; a JSON body's own field of the same name takes precedence."
 
@@ -17,7 +18,7 @@ class CalibrateQuery(BaseModel):
     profile: ProfileRefText | None = Field(
         None, description=f"`name` or `name@version`. {_FOR_ARROW}")
     ellipse_confidence: float | None = Field(
-        None, gt=0.0, lt=1.0, description=f"Default 0.95. {_FOR_ARROW}")
+        None, gt=0.0, lt=1.0, description=f"Default {ELLIPSE_CONFIDENCE}. {_FOR_ARROW}")
     levels: list[float] | None = Field(
         None, json_schema_extra=LEVELS_SCHEMA,
         description=f"{LEVELS_TEXT} Repeat it. {_FOR_ARROW}")

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.io.kitti_calib import CAMERA_AXES, camera_boxes, parse_calib
@@ -56,7 +57,7 @@ PathArg = str | os.PathLike[str]
 def load_kitti(detections: PathArg | Sequence[PathArg], ground_truth: PathArg | None = None,
                *, calib: PathArg | None = None, classes: Sequence[str] = KITTI_CLASSES,
                class_map: Mapping[str, str] | None = None, score: str = "probability",
-               threshold: float = 2.0, difficulty: str | None = None,
+               threshold: float = MATCH_THRESHOLD, difficulty: str | None = None,
                max_bytes: int | None = None) -> Dump:
     """Read KITTI label files with scores (and, optionally, KITTI ground truth) into a `Dump`.
 

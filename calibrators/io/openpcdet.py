@@ -25,6 +25,7 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
+from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.io.kitti_ignore import DONTCARE_OVERLAP, NEIGHBOURS, ignored_detections
@@ -39,7 +40,7 @@ MAX_ROWS = 50_000_000
 def load_openpcdet(path: str | os.PathLike[str],
                    ground_truth: str | os.PathLike[str] | None = None, *,
                    classes: Sequence[str], class_map: Mapping[str, str] | None = None,
-                   threshold: float = 2.0, max_bytes: int | None = None) -> Dump:
+                   threshold: float = MATCH_THRESHOLD, max_bytes: int | None = None) -> Dump:
     """Read an OpenPCDet `result.pkl` (and optionally its infos pickle) into a `Dump`.
 
     `classes` is the model config's CLASS_NAMES in order (`pred_labels` are checked against

@@ -36,6 +36,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
+from calibrators.defaults import DEFAULT_LEVELS
 from calibrators.ellipse import chi2_2_quantile
 from calibrators.levels import check_levels
 from calibrators.profile import CalibrationProfile
@@ -190,7 +191,7 @@ class _LabelledGraphWithHypotheses(_GraphWithHypotheses):
 
 
 def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
-                levels: Sequence[float] = (0.95,), layer_logits: bool | None = None,
+                levels: Sequence[float] = DEFAULT_LEVELS, layer_logits: bool | None = None,
                 labels: bool = False) -> CalibrationGraph:
     """The graph of `profile` for covariance source `cov_source` (default: the profile's own;
     any of `profile.served_sources`) with regions at `levels`. `layer_logits`: take the

@@ -22,6 +22,7 @@ from typing import Any
 
 import torch
 
+from calibrators.defaults import DEFAULT_LEVELS
 from calibrators.io import atomic_write
 from calibrators.profile import CalibrationProfile
 from detectors.export.graph import CalibrationGraph, ExportError, build_graph
@@ -36,7 +37,7 @@ METADATA_KEY = "detcal"
 
 def export_profile(profile: CalibrationProfile, path: str | os.PathLike[str],
                    format: str = "onnx", *, cov_source: str | None = None,
-                   levels: Sequence[float] = (0.95,), layer_logits: bool | None = None,
+                   levels: Sequence[float] = DEFAULT_LEVELS, layer_logits: bool | None = None,
                    input_dtype: str = "float64", labels: bool = False) -> dict[str, Any]:
     """Write `profile`'s graph (`build_graph` with these options) to `path` atomically;
     returns its description (the metadata written with it). Raises `ExportError`."""

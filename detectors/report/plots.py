@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from calibrators import ellipse, metrics
+from calibrators.defaults import ELLIPSE_CONFIDENCE
 from detectors.panels import Curve, panel_grid, pyplot
 from detectors.panels.bev import BevStyle, bev_panel
 from detectors.panels.calibration_curve import calibration_curve_panel
@@ -134,7 +135,7 @@ def residual_plots(residuals: Mapping[str, np.ndarray], covariances: Mapping[str
 def bev_before_after(points: np.ndarray, gt_boxes: np.ndarray, boxes: np.ndarray,
                      labels: np.ndarray, classes: Sequence[str],
                      sides: Mapping[str, tuple[np.ndarray, np.ndarray]], stem: Path,
-                     min_score: float = 0.3, confidence: float = 0.95,
+                     min_score: float = 0.3, confidence: float = ELLIPSE_CONFIDENCE,
                      extent: float = 51.2) -> list[Path]:
     """One panel per side: `points [P, >=2]`, GT `gt_boxes [G, 9]` (dashed), detections
     `boxes [N, 9]` with `labels [N]` whose side's `scores [N] >= min_score`, and the
