@@ -48,8 +48,8 @@ from calibrators.vocab import detcal_version
 log = logging.getLogger("detcal.app")
 
 DESCRIPTION = """Post-hoc calibration of DETR-family 3D detectors: fit a versioned calibration
-profile (temperature + per-class depth scaling) on a validation dump, then turn raw
-detections into calibrated scores, covariances and uncertainty ellipses.
+profile (score calibration, covariance scaling, coverage regions) on a validation dump, then
+turn raw detections into calibrated scores, covariances and uncertainty ellipses.
 Admin endpoints need `Authorization: Bearer <DETCAL_ADMIN_TOKEN>`."""
 
 

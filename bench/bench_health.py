@@ -25,7 +25,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from bench.bench_service import _payload, _port, _wait, serve_detcal
+from bench.bench_service import free_port, serve_detcal, service_payload, wait_ready
 
 
 def _rss_mb(pid: int) -> float:
@@ -37,7 +37,7 @@ def _rss_mb(pid: int) -> float:
     return float("nan")
 
 
-def _tree_rss_mb(pid: int) -> float:
+def tree_rss_mb(pid: int) -> float:
     """RSS of `pid` and all its descendants (the calibrate worker processes) in MiB."""
     total, todo = 0.0, [pid]
     while todo:
@@ -69,16 +69,16 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--clients", type=int, default=2, help="concurrent calibrate clients")
     args = ap.parse_args(argv)
 
-    payload, profile_json = _payload(args.detections)
+    payload, profile_json = service_payload(args.detections)
     body = json.dumps(payload, separators=(",", ":")).encode()
     with tempfile.TemporaryDirectory() as tmp:
-        port = _port()
+        port = free_port()
         proc = serve_detcal(Path(tmp) / "data", profile_json, port, env={
             "DETCAL_ADMIN_TOKEN": "bench-health-token",
             "DETCAL_MAX_REQUEST_BYTES": str(max(len(body) + 1024, 8 * 2**20))})
         base = f"http://127.0.0.1:{port}"
         try:
-            _wait(f"{base}/healthz", proc)
+            wait_ready(f"{base}/healthz", proc)
             idle, loaded, calib = [], [], []
             stop = threading.Event()
             poller = threading.Thread(target=_poll_health, args=(f"{base}/healthz", stop, idle))
@@ -86,12 +86,12 @@ def main(argv: list[str] | None = None) -> int:
             time.sleep(min(5.0, args.seconds / 4))
             stop.set()
             poller.join()
-            rss_idle = _tree_rss_mb(proc.pid)
+            rss_idle = tree_rss_mb(proc.pid)
             # one large request first: the calibrate worker process starts on the first one
             httpx.post(f"{base}/v1/calibrate", content=body, timeout=120.0,
                        headers={"content-type": "application/json"}).raise_for_status()
             time.sleep(1.0)
-            rss_warm = _tree_rss_mb(proc.pid)
+            rss_warm = tree_rss_mb(proc.pid)
             rss_peak = rss_warm
             stop = threading.Event()
             poller = threading.Thread(target=_poll_health,
@@ -112,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
                 w.start()
             deadline = time.monotonic() + args.seconds
             while time.monotonic() < deadline:
-                rss_peak = max(rss_peak, _tree_rss_mb(proc.pid))
+                rss_peak = max(rss_peak, tree_rss_mb(proc.pid))
                 time.sleep(0.05)
             stop.set()
             for t in (poller, *workers):

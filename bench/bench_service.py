@@ -35,13 +35,13 @@ import numpy as np
 ROOT = Path(__file__).resolve().parent.parent
 
 
-def _port() -> int:
+def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
 
 
-def _wait(url: str, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
+def wait_ready(url: str, proc: subprocess.Popen, timeout_s: float = 60.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         if proc.poll() is not None:
@@ -72,7 +72,7 @@ def serve_detcal(data_dir: Path, profile_json: str, port: int, *serve_args: str,
                             env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL)
 
 
-def _payload(n: int = 300) -> tuple[dict, str]:
+def service_payload(n: int = 300) -> tuple[dict, str]:
     """A 300-detection frame from a synthetic dump, and the profile JSON fit on that dump."""
     from calibrators.fit import fit_profile
     from calibrators.synthetic import synthetic_dump
@@ -217,7 +217,7 @@ def main(argv: list[str] | None = None) -> int:
 
     from calibrators.io.arrow_batch import ARROW_STREAM
 
-    payload, profile_json = _payload()
+    payload, profile_json = service_payload()
     body = json.dumps(payload).encode()
     arrow = _arrow(payload)
     batched = {"frames": [{**payload["frames"][0], "frame_id": f"bench-{i}"}
@@ -226,15 +226,15 @@ def main(argv: list[str] | None = None) -> int:
     n_k = max(20, args.requests // args.batch_frames)
     procs = []
     with tempfile.TemporaryDirectory() as tmp:
-        p_app, p_echo = _port(), _port()
+        p_app, p_echo = free_port(), free_port()
         try:
             procs.append(serve_detcal(Path(tmp) / "data", profile_json, p_app,
                                       env={"DETCAL_ADMIN_TOKEN": "bench"}))
             procs.append(subprocess.Popen(
                 [sys.executable, "-m", "uvicorn", "bench._echo_app:app", "--port", str(p_echo),
                  "--log-level", "warning"], cwd=ROOT, stdout=subprocess.DEVNULL))
-            _wait(f"http://127.0.0.1:{p_app}/healthz", procs[0])
-            _wait(f"http://127.0.0.1:{p_echo}/docs", procs[1])
+            wait_ready(f"http://127.0.0.1:{p_app}/healthz", procs[0])
+            wait_ready(f"http://127.0.0.1:{p_echo}/docs", procs[1])
             echo_url = f"http://127.0.0.1:{p_echo}/echo"
             url = f"http://127.0.0.1:{p_app}/v1/calibrate"
             with httpx.Client(timeout=30.0) as client:

@@ -26,20 +26,20 @@ from pathlib import Path
 import httpx
 import numpy as np
 
-from bench.bench_health import _tree_rss_mb
-from bench.bench_service import _payload, _port, _wait, serve_detcal
+from bench.bench_health import tree_rss_mb
+from bench.bench_service import free_port, serve_detcal, service_payload, wait_ready
 
 
 def _run(workers: int, rate: float, seconds: float, body: bytes, profile_json: str) -> dict:
     """One server with `workers` workers under the steady load; its figures."""
     with tempfile.TemporaryDirectory() as tmp:
-        port = _port()
+        port = free_port()
         proc = serve_detcal(Path(tmp) / "data", profile_json, port, "--workers", str(workers),
                             env={"DETCAL_ADMIN_TOKEN": "bench-steady-token"})
         url = f"http://127.0.0.1:{port}/v1/calibrate"
         headers = {"content-type": "application/json"}
         try:
-            _wait(f"http://127.0.0.1:{port}/healthz", proc)
+            wait_ready(f"http://127.0.0.1:{port}/healthz", proc)
             latencies: list[float] = []
             late, errors = [0], [0]
             lock = threading.Lock()
@@ -74,15 +74,15 @@ def _run(workers: int, rate: float, seconds: float, body: bytes, profile_json: s
                 with lock:
                     latencies.clear()
                     late[0] = errors[0] = 0
-                rss_start = _tree_rss_mb(proc.pid)
+                rss_start = tree_rss_mb(proc.pid)
                 start = time.perf_counter() + 0.5
                 total = int(seconds * rate)
                 futures = [pool.submit(one, start + i / rate) for i in range(total)]
                 rss_peak = rss_start
                 while not all(f.done() for f in futures):
-                    rss_peak = max(rss_peak, _tree_rss_mb(proc.pid))
+                    rss_peak = max(rss_peak, tree_rss_mb(proc.pid))
                     time.sleep(1.0)
-            rss_end = _tree_rss_mb(proc.pid)
+            rss_end = tree_rss_mb(proc.pid)
         finally:
             proc.terminate()
             proc.wait(20)
@@ -101,7 +101,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--reference-seconds", type=float, default=60.0,
                     help="duration of the --workers 1 reference run")
     args = ap.parse_args(argv)
-    payload, profile_json = _payload()
+    payload, profile_json = service_payload()
     body = json.dumps(payload).encode()
     ref = _run(1, args.rate, args.reference_seconds, body, profile_json)
     run = _run(args.workers, args.rate, args.seconds, body, profile_json)

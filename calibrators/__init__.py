@@ -1,8 +1,11 @@
-"""detcal calibration library: numpy + scipy only (no torch, no server).
+"""detcal calibration library: numpy, scipy and pyarrow (for Parquet and Arrow); no torch, no
+server.
 
-Fit a temperature for the class logits and one depth-scaling factor per class for the box
-covariance on a validation dump, store them as a `CalibrationProfile`, apply it to new
-detections. See docs/science.md for the math and docs/formats.md for the dump formats.
+Fit a calibration profile on a validation dump: score calibration (temperature, per-class
+temperature, Platt, isotonic or histogram binning), covariance scaling (depth scaling
+`Σ + k·d·I`, or with shrinkage `s·Σ + k·d·I`) and coverage regions (Gaussian or split
+conformal); store it as a `CalibrationProfile`, apply it to new detections. See
+docs/science.md for the math and docs/formats.md for the dump formats.
 
 The spine every front end goes through (service, CLI, dashboard, report):
 
@@ -11,24 +14,48 @@ The spine every front end goes through (service, CLI, dashboard, report):
     out = Detections.from_dump(dump, profile.cov_source).calibrate(profile)   # the same
     summary = summarize(dump, profile)                      # before/after -> Summary
 
-and, for the arrays in between, `match_dump`, `tp_residuals`, `raw_covariances`.
+and, for the arrays in between, `match_dump`, `tp_residuals`, `raw_covariances`. Every
+estimator (`TemperatureScaler`, `ClassTemperatureScaler`, `PlattScaler`,
+`IsotonicCalibrator`, `HistogramBinning`, `DepthScaler`, `ShrinkageDepthScaler`,
+`ConformalRegions`) and every error (`FieldError`, `OptionError`, `NotFittedError`) is
+exported here; the defaults (`ELLIPSE_CONFIDENCE`, `DEFAULT_LEVELS`, `MATCH_THRESHOLD`) too.
 """
 
 from calibrators import io, metrics
 from calibrators.apply import apply_profile, check_profile_fits
+from calibrators.conformal import ConformalRegions
 from calibrators.covariance import layer_spread
+from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
 from calibrators.depth import DepthScaler
 from calibrators.detections import Detections
 from calibrators.dump import Dump
 from calibrators.ellipse import Ellipse, ellipse
 from calibrators.evaluate import EvaluationReport, evaluate
-from calibrators.exceptions import NotFittedError
+from calibrators.exceptions import FieldError, NotFittedError
 from calibrators.fit import fit_profile
-from calibrators.io import load_dump, load_nuscenes, save_dump, save_nuscenes
+from calibrators.io import (
+    ParquetDataset,
+    ParquetWriter,
+    load_dump,
+    load_nuscenes,
+    load_parquet,
+    open_parquet,
+    save_dump,
+    save_nuscenes,
+    save_parquet,
+)
+from calibrators.json_safe import to_jsonable
 from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
 from calibrators.matching import MatchResult, match
 from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibratedDetections, CalibrationProfile
+from calibrators.score_calibration import (
+    ClassTemperatureScaler,
+    HistogramBinning,
+    IsotonicCalibrator,
+    PlattScaler,
+)
+from calibrators.shrinkage import ShrinkageDepthScaler
 from calibrators.summary import format_table, summarize
 from calibrators.summary_types import ProfileReport, Summary
 from calibrators.temperature import TemperatureScaler
@@ -36,16 +63,28 @@ from calibrators.temperature import TemperatureScaler
 __all__ = [
     "CalibratedDetections",
     "CalibrationProfile",
+    "ClassTemperatureScaler",
+    "ConformalRegions",
+    "DEFAULT_LEVELS",
     "DepthScaler",
     "Detections",
     "Dump",
+    "ELLIPSE_CONFIDENCE",
     "Ellipse",
     "EvaluationReport",
+    "FieldError",
     "FitOptions",
+    "HistogramBinning",
+    "IsotonicCalibrator",
+    "MATCH_THRESHOLD",
     "MatchResult",
     "NotFittedError",
     "OptionError",
+    "ParquetDataset",
+    "ParquetWriter",
+    "PlattScaler",
     "ProfileReport",
+    "ShrinkageDepthScaler",
     "Summary",
     "TemperatureScaler",
     "apply_profile",
@@ -58,13 +97,17 @@ __all__ = [
     "layer_spread",
     "load_dump",
     "load_nuscenes",
+    "load_parquet",
     "match",
     "match_dump",
     "metrics",
+    "open_parquet",
     "raw_covariances",
     "resolve_cov_source",
     "save_dump",
     "save_nuscenes",
+    "save_parquet",
     "summarize",
+    "to_jsonable",
     "tp_residuals",
 ]

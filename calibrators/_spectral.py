@@ -13,11 +13,11 @@ import numpy as np
 
 from calibrators.checks import covariance_tolerance
 
-_BLOCK = 1 << 15  # rows per block of `_spectral_2x2`: its temporaries stay in the CPU cache
+_BLOCK = 1 << 15  # rows per block of `spectral_2x2`: its temporaries stay in the CPU cache
 _TINY = float(np.finfo(np.float64).tiny)
 
 
-def _spectral(cov: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def spectral(cov: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Eigenvalues `[D, N]` of Σ = U Λ Uᵀ and `(Uᵀ r)² [D, N]`, by `np.linalg.eigh`."""
     tol = covariance_tolerance(np.abs(cov).reshape(len(cov), -1).max(axis=1), cov.shape[1])
     _check_symmetric(np.abs(cov - np.swapaxes(cov, 1, 2)).reshape(len(cov), -1).max(axis=1),
@@ -28,10 +28,10 @@ def _spectral(cov: np.ndarray, r: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return _zero_tiny(np.ascontiguousarray(eig.T)), np.ascontiguousarray(sq)
 
 
-def _spectral_2x2(cov: np.ndarray, r: np.ndarray,
+def spectral_2x2(cov: np.ndarray, r: np.ndarray,
                   on_block: Callable[[int, np.ndarray], None] | None = None
                   ) -> tuple[np.ndarray, np.ndarray]:
-    """`_spectral` in closed form for D = 2, with no eigenvectors and no trigonometry.
+    """`spectral` in closed form for D = 2, with no eigenvectors and no trigonometry.
 
     For Σ = [[a, b], [b, c]]: λ = (a + c)/2 ∓ h with h = hypot((a - c)/2, b). The major axis
     is at angle θ with cos 2θ = (a - c)/(2h), sin 2θ = b/h, so the squared projection of
@@ -54,7 +54,7 @@ class _Overflow(Exception):
 def _blocks(cov: np.ndarray, r: np.ndarray, hypot: bool,
             on_block: Callable[[int, np.ndarray], None] | None
             ) -> tuple[np.ndarray, np.ndarray]:
-    """`_spectral_2x2` block by block; h by `np.hypot` if `hypot`, else by a square root
+    """`spectral_2x2` block by block; h by `np.hypot` if `hypot`, else by a square root
     (4x faster), which raises `_Overflow` on the first block where h² could overflow."""
     n = len(cov)
     eig, sq = np.empty((2, n)), np.empty((2, n))
@@ -75,7 +75,7 @@ def _blocks(cov: np.ndarray, r: np.ndarray, hypot: bool,
 
 
 class _Block:
-    """Buffers `[m]` of one block of `_spectral_2x2` and its computation on them."""
+    """Buffers `[m]` of one block of `spectral_2x2` and its computation on them."""
 
     def __init__(self, size: int) -> None:
         self.buf, self.zero = np.empty((5, size)), np.zeros(size)

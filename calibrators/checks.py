@@ -154,3 +154,62 @@ def check_positive(name: str, value: object) -> float:
     if not np.isfinite(x) or x <= 0:
         raise FieldError(name, f"{name} must be a finite number > 0, got {value}")
     return x
+
+
+def check_min_samples(value: int) -> int:
+    """`value` as an int >= 1 (an estimator's `min_samples`), or a ValueError."""
+    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
+        raise ValueError(f"min_samples must be an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def check_bounds(bounds: tuple[float, float], *, zero_low: bool = False
+                 ) -> tuple[float, float]:
+    """An estimator's search `bounds` as floats `(low, high)`: finite, `0 < low < high`
+    (`0 <= low` with `zero_low`), or a ValueError."""
+    try:
+        low, high = (float(b) for b in bounds)
+    except (TypeError, ValueError):
+        raise ValueError(f"bounds must be a pair of numbers, got {bounds!r}") from None
+    if not (np.isfinite(low) and np.isfinite(high) and (0 <= low if zero_low else 0 < low)
+            and low < high):
+        raise ValueError(f"bounds must satisfy 0 {'<=' if zero_low else '<'} low < high "
+                         f"(finite), got {bounds!r}")
+    return low, high
+
+
+def check_distances(distances: np.ndarray, n: int | None) -> np.ndarray:
+    """`distances [N]` as float64, each >= 0 (N = `n` residuals unless None), or a ValueError."""
+    d = as_float_array("distances", distances, ndim=1)
+    if n is not None:
+        check_length("distances", d, n, "residuals")
+    negative = d < 0
+    if negative.any():
+        i = int(np.argmax(negative))
+        raise ValueError(f"distances[{i}] = {d[i]} is negative")
+    return d
+
+
+def class_codes(classes: np.ndarray, n: int) -> tuple[list, np.ndarray]:
+    """Distinct class labels (as Python scalars, sorted) and the code `[N]` of each entry."""
+    arr = np.asarray(classes)
+    if arr.ndim != 1:
+        raise ValueError(f"classes must have 1 dimension, got shape {arr.shape}")
+    check_length("classes", arr, n, "distances")
+    if n == 0:
+        return [], np.zeros(0, dtype=np.int64)
+    if arr.dtype.kind in "iu":
+        low, high = int(arr.min()), int(arr.max())
+        if high - low <= 4 * n:  # small integer labels: a counting pass, no sort
+            shifted = arr - low if low else arr
+            present = np.bincount(shifted, minlength=high - low + 1) > 0
+            keys = (np.flatnonzero(present) + low).tolist()
+            if not low and present.all():  # labels 0 .. C - 1: each its own code
+                return keys, shifted.astype(np.int64)
+            return keys, (np.cumsum(present) - 1)[shifted]
+    try:
+        keys, codes = np.unique(arr, return_inverse=True)
+    except TypeError:
+        raise ValueError("classes must be labels of one comparable type (all ints or all strs)"
+                         ) from None
+    return keys.tolist(), codes.reshape(-1).astype(np.int64)

@@ -29,8 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.checks import as_float_array, check_length
-from calibrators.depth import _check_distances, _class_codes
+from calibrators.checks import as_float_array, check_distances, check_length, class_codes
 from calibrators.exceptions import FieldError, check_fitted
 from calibrators.json_safe import to_jsonable
 from calibrators.levels import (
@@ -108,9 +107,9 @@ class ConformalRegions:
             i = int(np.argmax(s < 0))
             raise FieldError("scores", f"scores[{i}] = {s[i]} is negative (a Mahalanobis "
                              "distance)", row=i)
-        d = _check_distances(distances, None)
+        d = check_distances(distances, None)
         check_length("distances", d, s.shape[0], "scores")
-        keys, codes = _class_codes(classes, s.shape[0])
+        keys, codes = class_codes(classes, s.shape[0])
         known = keys if all_classes is None else _all_classes(all_classes, keys)
         position = {key: i for i, key in enumerate(known)}
         cls = np.array([position[key] for key in keys], dtype=np.int64)[codes]
@@ -229,8 +228,8 @@ class ConformalRegions:
     # -- helpers -------------------------------------------------------------------------------
     def _cells(self, classes: np.ndarray, distances: np.ndarray
                ) -> tuple[np.ndarray, np.ndarray]:
-        d = _check_distances(distances, None)
-        keys, codes = _class_codes(classes, d.shape[0])
+        d = check_distances(distances, None)
+        keys, codes = class_codes(classes, d.shape[0])
         position = {key: i for i, key in enumerate(self.classes_)}
         unseen = len(self.classes_)
         cls = np.array([position.get(key, unseen) for key in keys], dtype=np.int64)

@@ -24,8 +24,16 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.checks import as_float_array, check_covariances, check_length
-from calibrators.depth_nll import _Binned, _binned, _fit_k, _Terms
+from calibrators.checks import (
+    as_float_array,
+    check_bounds,
+    check_covariances,
+    check_distances,
+    check_min_samples,
+    class_codes,
+)
+from calibrators.depth_nll import DepthBins, DepthTerms, depth_bins
+from calibrators.depth_search import fit_k
 from calibrators.exceptions import FieldError, check_fitted
 
 
@@ -55,11 +63,11 @@ class DepthScaler:
             distances: np.ndarray, classes: np.ndarray) -> DepthScaler:
         """Fit on `residuals [N, D]`, `covariances [N, D, D] | None`, `distances [N]` (>= 0)
         and `classes [N]` (any hashable labels, e.g. ints or strs); returns self."""
-        min_samples = _check_min_samples(self.min_samples)
-        bounds = _check_bounds(self.bounds)
+        min_samples = check_min_samples(self.min_samples)
+        bounds = check_bounds(self.bounds, zero_low=True)
         r, cov, d, keys, codes, terms = fit_inputs(residuals, covariances, distances, classes)
         n, dim = r.shape
-        groups, pooled = _binned(terms, codes, len(keys))
+        groups, pooled = depth_bins(terms, codes, len(keys))
         k_of, pooled_k = self._fit_binned(groups, pooled, keys, min_samples, bounds)
         exact, pooled_nll = terms.fitted_nll(k_of, codes, pooled_k,
                                              np.array([g.n for g in groups]))
@@ -69,15 +77,15 @@ class DepthScaler:
         self.n_dims_ = dim
         return self
 
-    def fit_binned(self, groups: list[_Binned], pooled: _Binned, keys: list, n_dims: int
+    def fit_binned(self, groups: list[DepthBins], pooled: DepthBins, keys: list, n_dims: int
                    ) -> DepthScaler:
         """Fit from binned statistics (`calibrators.depth_nll.BinSums.finish()`) of the
         groups named `keys` and of all of them pooled, as `fit` does after binning: the same
         `k_`, `pooled_k_`, `fallback_classes_`, `n_samples_` (a streamed fit merges the
         statistics of chunks of the data). `nll_` and `pooled_nll_` are None here (they need
         the data once more). Returns self."""
-        min_samples = _check_min_samples(self.min_samples)
-        bounds = _check_bounds(self.bounds)
+        min_samples = check_min_samples(self.min_samples)
+        bounds = check_bounds(self.bounds, zero_low=True)
         if pooled.n == 0:
             raise FieldError("residuals", "residuals is empty: no sample to fit k on")
         _, self.pooled_k_ = self._fit_binned(groups, pooled, keys, min_samples, bounds)
@@ -86,11 +94,11 @@ class DepthScaler:
         self.n_dims_ = int(n_dims)
         return self
 
-    def _fit_binned(self, groups: list[_Binned], pooled: _Binned, keys: list, min_samples: int,
+    def _fit_binned(self, groups: list[DepthBins], pooled: DepthBins, keys: list, min_samples: int,
                     bounds: tuple[float, float]) -> tuple[np.ndarray, float]:
         """Set `k_`, `n_samples_`, `fallback_classes_`; returns (k per group, pooled k)."""
         xtol = float(self.xtol)
-        pooled_k = _fit_k(pooled, bounds, xtol, "pooled")
+        pooled_k = fit_k(pooled, bounds, xtol, "pooled")
         k_of = np.full(len(keys), pooled_k)
         self.k_, self.n_samples_, self.fallback_classes_ = {}, {}, []
         for g, (key, stats) in enumerate(zip(keys, groups, strict=True)):
@@ -98,7 +106,7 @@ class DepthScaler:
             if stats.n < min_samples:
                 self.fallback_classes_.append(key)
             else:
-                k_of[g] = _fit_k(stats, bounds, xtol, key)
+                k_of[g] = fit_k(stats, bounds, xtol, key)
             self.k_[key] = float(k_of[g])
         return k_of, pooled_k
 
@@ -120,14 +128,14 @@ def fit_inputs(residuals: np.ndarray, covariances: np.ndarray | None, distances:
                                       "with N, D >= 1")
     n, dim = r.shape
     cov = _check_cov(covariances, n, dim, full=False)
-    d = _check_distances(distances, n)
-    keys, codes = _class_codes(classes, n)
-    return r, cov, d, keys, codes, _Terms.build(r, cov, d)
+    d = check_distances(distances, n)
+    keys, codes = class_codes(classes, n)
+    return r, cov, d, keys, codes, DepthTerms.build(r, cov, d)
 
 
 def per_row(table: dict, pooled: float, classes: np.ndarray) -> np.ndarray:
     """`[N]` the value of `table` for each row's class in `classes [N]` (pooled if absent)."""
-    keys, codes = _class_codes(classes, len(classes))
+    keys, codes = class_codes(classes, len(classes))
     values = np.array([table.get(key, pooled) for key in keys], dtype=np.float64)
     return values[codes] if len(classes) else np.zeros(0)
 
@@ -137,9 +145,9 @@ def transform_inputs(scaler: Any, covariances: np.ndarray | None, distances: np.
     """Checked `(distances [N], covariances [N, D, D] | None, k per row [N])` for the
     `transform` of a fitted depth-type scaler (`k_`, `pooled_k_`, `n_dims_`)."""
     check_fitted(scaler, "k_")
-    d = _check_distances(distances, None)
+    d = check_distances(distances, None)
     cov = _check_cov(covariances, d.shape[0], scaler.n_dims_)
-    _class_codes(classes, d.shape[0])          # checks the length and the labels
+    class_codes(classes, d.shape[0])          # checks the length and the labels
     return d, cov, per_row(scaler.k_, scaler.pooled_k_, np.asarray(classes))
 
 
@@ -152,26 +160,10 @@ def add_depth_term(covariances: np.ndarray, distances: np.ndarray, k: np.ndarray
     return out
 
 
-def _check_min_samples(value: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, int | np.integer) or value < 1:
-        raise ValueError(f"min_samples must be an integer >= 1, got {value!r}")
-    return int(value)
-
-
-def _check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
-    try:
-        low, high = (float(b) for b in bounds)
-    except (TypeError, ValueError):
-        raise ValueError(f"bounds must be a pair of numbers, got {bounds!r}") from None
-    if not (np.isfinite(low) and np.isfinite(high) and 0 <= low < high):
-        raise ValueError(f"bounds must satisfy 0 <= low < high (finite), got {bounds!r}")
-    return low, high
-
-
 def _check_cov(covariances: np.ndarray | None, n: int, dim: int, full: bool = True
                ) -> np.ndarray | None:
     """Float64 `[n, dim, dim]` covariances or None. `full=False` checks shape and finiteness
-    only: fit tests symmetry and PSD on the decomposition it needs anyway (`_Terms.build`)."""
+    only: fit tests symmetry and PSD on the decomposition it needs anyway (`DepthTerms.build`)."""
     if covariances is None:
         return None
     cov = as_float_array("covariances", covariances, ndim=3)
@@ -179,39 +171,3 @@ def _check_cov(covariances: np.ndarray | None, n: int, dim: int, full: bool = Tr
     if cov.shape[0] != n:
         raise ValueError(f"covariances has {cov.shape[0]} matrices but {n} were expected")
     return cov
-
-
-def _check_distances(distances: np.ndarray, n: int | None) -> np.ndarray:
-    d = as_float_array("distances", distances, ndim=1)
-    if n is not None:
-        check_length("distances", d, n, "residuals")
-    negative = d < 0
-    if negative.any():
-        i = int(np.argmax(negative))
-        raise ValueError(f"distances[{i}] = {d[i]} is negative")
-    return d
-
-
-def _class_codes(classes: np.ndarray, n: int) -> tuple[list, np.ndarray]:
-    """Distinct class labels (as Python scalars, sorted) and the code `[N]` of each entry."""
-    arr = np.asarray(classes)
-    if arr.ndim != 1:
-        raise ValueError(f"classes must have 1 dimension, got shape {arr.shape}")
-    check_length("classes", arr, n, "distances")
-    if n == 0:
-        return [], np.zeros(0, dtype=np.int64)
-    if arr.dtype.kind in "iu":
-        low, high = int(arr.min()), int(arr.max())
-        if high - low <= 4 * n:  # small integer labels: a counting pass, no sort
-            shifted = arr - low if low else arr
-            present = np.bincount(shifted, minlength=high - low + 1) > 0
-            keys = (np.flatnonzero(present) + low).tolist()
-            if not low and present.all():  # labels 0 .. C - 1: each its own code
-                return keys, shifted.astype(np.int64)
-            return keys, (np.cumsum(present) - 1)[shifted]
-    try:
-        keys, codes = np.unique(arr, return_inverse=True)
-    except TypeError:
-        raise ValueError("classes must be labels of one comparable type (all ints or all strs)"
-                         ) from None
-    return keys.tolist(), codes.reshape(-1).astype(np.int64)

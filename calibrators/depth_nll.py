@@ -1,6 +1,6 @@
-"""The Gaussian NLL of depth scaling as a function of `k`, exact (`_Terms`) and binned
-(`_Binned`), on the grid of `calibrators.depth_grid`, searched by `calibrators.depth_search`
-(`_fit_k`); used by `DepthScaler` and `ShrinkageDepthScaler`. The math is in the docstring
+"""The Gaussian NLL of depth scaling as a function of `k`, exact (`DepthTerms`) and binned
+(`DepthBins`), on the grid of `calibrators.depth_grid`, searched by `calibrators.depth_search`
+(`fit_k`); used by `DepthScaler` and `ShrinkageDepthScaler`. The math is in the docstring
 of `calibrators.depth`.
 """
 
@@ -10,17 +10,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators._spectral import _spectral, _spectral_2x2
+from calibrators._spectral import spectral, spectral_2x2
 from calibrators.depth_grid import (  # noqa: F401
-    _BINS,
-    _MANTISSA_BITS,
-    _OCTAVES,
-    _bin_key,
-    _log_bin,
-    _log_bin_low,
-    _raw_key,
+    GRID_BINS,
+    MANTISSA_BITS,
+    OCTAVES,
+    bin_key,
+    log_bin,
+    log_bin_low,
+    raw_key,
 )
-from calibrators.depth_search import _brent, _fit_k  # noqa: F401  (depth.py, shrinkage.py, tests)
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 _CHUNK = 1 << 15  # samples per block of the NLL and binning loops: buffers stay in the cache
@@ -28,7 +27,7 @@ _U64_MAX = int(np.iinfo(np.uint64).max)
 
 
 @dataclass(frozen=True)
-class _Terms:
+class DepthTerms:
     """Per-sample NLL terms, dims first: `eig [D, N]` of Σ, `sq [D, N] = (Uᵀ r)²`, `dist [N]`."""
 
     eig: np.ndarray
@@ -37,7 +36,7 @@ class _Terms:
     grid: tuple[int, int, bool] | None = None  # `_key_grid(self, [])` when taken in build
 
     @classmethod
-    def build(cls, r: np.ndarray, cov: np.ndarray | None, d: np.ndarray) -> _Terms:
+    def build(cls, r: np.ndarray, cov: np.ndarray | None, d: np.ndarray) -> DepthTerms:
         """Terms of residuals `r [N, D]` under `cov [N, D, D]` (None = 0) at distances `d`;
         checks that Σ is symmetric PSD and that Σ + k·d·I can be regular."""
         near = np.flatnonzero(d == 0)
@@ -46,9 +45,9 @@ class _Terms:
             eig, sq = np.zeros((r.shape[1], r.shape[0])), np.ascontiguousarray((r * r).T)
         elif r.shape[1] == 2:  # the grid of a = λ/d from each block while it is in the cache
             scan = None if len(near) else _GridScan(d)
-            eig, sq = _spectral_2x2(cov, r, None if scan is None else scan.add_block)
+            eig, sq = spectral_2x2(cov, r, None if scan is None else scan.add_block)
         else:
-            eig, sq = _spectral(cov, r)
+            eig, sq = spectral(cov, r)
         # eig >= 0, ascending (`_zero_tiny`): row 0 is the min
         singular = near[eig[0, near] == 0]
         if len(singular):
@@ -134,7 +133,7 @@ class _Terms:
 
 
 @dataclass(frozen=True)
-class _Binned:
+class DepthBins:
     """Sufficient statistics of one group's NLL as a function of k (module docstring).
 
     With `n` samples of `D` dims, pairs with `d > 0` and `a = λ/d > 0` binned by `a`:
@@ -159,7 +158,7 @@ class _Binned:
 
     @classmethod
     def from_sums(cls, n: int, n_dims: int, const: float, count: np.ndarray, sum_a: np.ndarray,
-                  sum_b: np.ndarray, sum_ab: np.ndarray) -> _Binned:
+                  sum_b: np.ndarray, sum_ab: np.ndarray) -> DepthBins:
         """From per-bin sums `[1 + B]` of 1, a, b and a·b; bin 0 holds the pairs with
         `a = 0`, empty bins are dropped."""
         n_zero, b_zero = float(count[0]), float(sum_b[0])
@@ -187,12 +186,12 @@ class _Binned:
 
 @dataclass(frozen=True)
 class BinSums:
-    """Additive per-group sums behind `_Binned` (module docstring of `calibrators.depth`).
+    """Additive per-group sums behind `DepthBins` (module docstring of `calibrators.depth`).
 
     `n [G]` samples and `const [G]` (sum of the k-free terms) per group, and `sums [4, G,
     1 + B]`: the sums of 1, a, b and a·b per group and bin; column 0 holds the pairs with
-    `a = 0`, column `i >= 1` the raw log-bin key `low - 1 + i` (`_raw_key`). Sums over disjoint
-    parts of the data add up (`+`, which also re-applies the grid's floor of `_OCTAVES`
+    `a = 0`, column `i >= 1` the raw log-bin key `low - 1 + i` (`raw_key`). Sums over disjoint
+    parts of the data add up (`+`, which also re-applies the grid's floor of `OCTAVES`
     octaves below the largest key), so a dataset can be binned chunk by chunk; `finish()`
     gives exactly the statistics of binning all of it at once.
     """
@@ -208,7 +207,7 @@ class BinSums:
         return self.low + self.sums.shape[2] - 2
 
     @classmethod
-    def build(cls, terms: _Terms, codes: np.ndarray, n_groups: int) -> BinSums:
+    def build(cls, terms: DepthTerms, codes: np.ndarray, n_groups: int) -> BinSums:
         """Sums of the terms of samples in groups `codes [N]` (0 .. n_groups - 1), in
         cache-sized blocks of samples: no full-size temporary array. Pairs are added dim by
         dim, samples in order (`np.add.at` adds in index order), so every sum is rounded
@@ -230,7 +229,7 @@ class BinSums:
                 rows = _far_rows(start, stop, near)
                 group = codes[rows]
                 a, b, key = buf.pairs(terms, j, rows)
-                _bin_key(a, low, n_bins, plain, out=key)
+                bin_key(a, low, n_bins, plain, out=key)
                 key += np.take(group_offset, group, out=buf.offset[:len(group)])
                 np.add.at(flat[0], key, 1.0)
                 np.add.at(flat[1], key, a)
@@ -256,7 +255,7 @@ class BinSums:
             return BinSums(self.n_dims, self.n + other.n, self.const + other.const, 0,
                            self.sums + other.sums)
         top = max(p.top for p in parts)
-        low = max(min(p.low for p in parts), top - _BINS + 1)
+        low = max(min(p.low for p in parts), top - GRID_BINS + 1)
         sums = np.zeros((4, len(self.n), top - low + 2))
         for p in (self, other):
             sums[:, :, 0] += p.sums[:, :, 0]
@@ -265,11 +264,11 @@ class BinSums:
                 np.add.at(sums, (slice(None), slice(None), cols), p.sums[:, :, 1:])
         return BinSums(self.n_dims, self.n + other.n, self.const + other.const, low, sums)
 
-    def finish(self) -> tuple[list[_Binned], _Binned]:
-        """`_Binned` statistics of every group and of all groups pooled."""
-        groups = [_Binned.from_sums(int(self.n[g]), self.n_dims, float(self.const[g]),
+    def finish(self) -> tuple[list[DepthBins], DepthBins]:
+        """`DepthBins` statistics of every group and of all groups pooled."""
+        groups = [DepthBins.from_sums(int(self.n[g]), self.n_dims, float(self.const[g]),
                                     *self.sums[:, g]) for g in range(len(self.n))]
-        pooled = _Binned.from_sums(int(self.n.sum()), self.n_dims, float(self.const.sum()),
+        pooled = DepthBins.from_sums(int(self.n.sum()), self.n_dims, float(self.const.sum()),
                                    *self.sums.sum(axis=1))
         return groups, pooled
 
@@ -282,7 +281,7 @@ class _PairBuffers:
         self.a, self.b = np.empty(size), np.empty(size)
         self.key, self.offset = np.empty(size, dtype=np.int64), np.empty(size, dtype=np.int64)
 
-    def pairs(self, terms: _Terms, j: int, rows: slice | np.ndarray
+    def pairs(self, terms: DepthTerms, j: int, rows: slice | np.ndarray
               ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """`(a [m], b [m], key buffer [m])` of dim `j` of the samples `rows` (all d > 0)."""
         dist = terms.dist[rows]
@@ -292,9 +291,9 @@ class _PairBuffers:
         return a, b, self.key[:len(dist)]
 
 
-def _row_const(terms: _Terms, start: int, stop: int, near: np.ndarray) -> np.ndarray:
+def _row_const(terms: DepthTerms, start: int, stop: int, near: np.ndarray) -> np.ndarray:
     """The k-free terms `[m]` of samples `start .. stop - 1`: `D·log d`, and for d = 0 (the
-    sorted indices `near`; Σ is regular there, checked in `_Terms.build`) the whole NLL sum
+    sorted indices `near`; Σ is regular there, checked in `DepthTerms.build`) the whole NLL sum
     `Σ_j log λ_j + q_j/λ_j`."""
     with np.errstate(divide="ignore"):
         row = terms.eig.shape[0] * np.log(terms.dist[start:stop])
@@ -317,7 +316,7 @@ def _far_rows(start: int, stop: int, near: np.ndarray) -> slice | np.ndarray:
     return np.flatnonzero(keep) + start
 
 
-def _key_grid(terms: _Terms, near: np.ndarray) -> tuple[int, int, bool]:
+def _key_grid(terms: DepthTerms, near: np.ndarray) -> tuple[int, int, bool]:
     """`_GridScan.grid()` of the `a = λ/d` of all samples not in `near` (d > 0), in blocks."""
     n_dims, size = terms.eig.shape
     scan = _GridScan(terms.dist)
@@ -332,7 +331,7 @@ def _key_grid(terms: _Terms, near: np.ndarray) -> tuple[int, int, bool]:
 
 class _GridScan:
     """The largest and the smallest positive of blocks of `a = λ/d >= 0` (`_zero_tiny`), and
-    whether any is 0: what `grid()` (`_log_bin_low`'s grid) needs."""
+    whether any is 0: what `grid()` (`log_bin_low`'s grid) needs."""
 
     def __init__(self, dist: np.ndarray) -> None:
         self.dist, self.buf, self.bits = dist, np.empty(0), np.empty(0, dtype=np.uint64)
@@ -362,21 +361,22 @@ class _GridScan:
         self.largest = max(self.largest, int(bits.max()) if high == _U64_MAX else high + 1)
 
     def grid(self) -> tuple[int, int, bool]:
-        """`(low, B, plain)`: the grid `_log_bin_low` puts on the `a`, from the largest `a`
+        """`(low, B, plain)`: the grid `log_bin_low` puts on the `a`, from the largest `a`
         and the smallest positive one (`(0, 0, False)` when no `a > 0`); `plain` when no `a`
         is 0 and the grid reaches the smallest, so that every bin is `1 + raw key - low`."""
         if self.largest == 0:
             return 0, 0, False
-        top = self.largest >> (52 - _MANTISSA_BITS)
-        low = (self.smallest + 1) >> (52 - _MANTISSA_BITS)
-        plain = self.wrapped < _U64_MAX and low >= top - _BINS + 1
-        low = max(low, top - _BINS + 1)
+        top = self.largest >> (52 - MANTISSA_BITS)
+        low = (self.smallest + 1) >> (52 - MANTISSA_BITS)
+        plain = self.wrapped < _U64_MAX and low >= top - GRID_BINS + 1
+        low = max(low, top - GRID_BINS + 1)
         return low, top - low + 1, plain
 
 
-def _binned(terms: _Terms, codes: np.ndarray, n_groups: int) -> tuple[list[_Binned], _Binned]:
-    """`_Binned` statistics of every group `g` (`codes [N] == g`) and of all samples pooled,
-    on one logarithmic grid of `a = λ/d` (`_log_bin`)."""
+def depth_bins(terms: DepthTerms, codes: np.ndarray, n_groups: int
+               ) -> tuple[list[DepthBins], DepthBins]:
+    """`DepthBins` statistics of every group `g` (`codes [N] == g`) and of all samples pooled,
+    on one logarithmic grid of `a = λ/d` (`log_bin`)."""
     return BinSums.build(terms, codes, n_groups).finish()
 
 

@@ -69,13 +69,14 @@ Progress = Callable[[str, float], None]
 def fit_profile(dump: Dump, options: FitOptions | None = None, *,
                 dump_sha256: str | None = None, progress: Progress | None = None,
                 **overrides: Any) -> CalibrationProfile:
-    """Fit temperature and per-class depth k on `dump`; see the module docstring.
+    """Fit a calibration profile (scores, covariance, regions) on `dump`; see the module docstring.
 
     options: a `FitOptions` (default: all defaults); keyword `overrides` replace single
     options, e.g. `fit_profile(dump, holdout=0.3)`. dump_sha256: the dump file's hash for
     provenance (None: a hash of the arrays). progress: called as `progress(stage, fraction)`
-    once the options are valid, with stages prepare, match, temperature, depth, report,
-    holdout report (if any), done and fractions rising from 0 to 1.
+    once the options are valid, with stages prepare, match, scores, covariance, regions,
+    other sources (if any), report, holdout report (if any), done and fractions rising from
+    0 to 1.
     Raises ValueError naming the option (an `OptionError`) for bad options, or a ValueError
     for a dump that cannot be fit.
     """

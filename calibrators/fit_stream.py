@@ -59,8 +59,8 @@ from calibrators.stream_chunks import (
 from calibrators.summary import summarize
 from calibrators.summary_types import ProfileReport
 from calibrators.temperature import (
-    _SIGMOID_BINS,
-    _SUBSAMPLE_MIN,
+    SIGMOID_BINS,
+    SUBSAMPLE_MIN,
     TemperatureScaler,
     subsample_rows,
     subsample_start,
@@ -123,7 +123,7 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     span = None
     if ds.score_mode == "sigmoid":   # the grid of the sigmoid bins, from the logits alone
         ranges = mapper.map(sigmoid_range, chunks)
-        if sum(r[0] for r in ranges) > _SIGMOID_BINS:
+        if sum(r[0] for r in ranges) > SIGMOID_BINS:
             span = (min(r[1] for r in ranges), max(r[2] for r in ranges))
     firsts: list[FirstPass] = mapper.map(first_pass, chunks, sources=sources, span=span)
     counts = np.array([f.n_fit_detections for f in firsts])
@@ -194,7 +194,7 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
     scaler = TemperatureScaler(mode=ds.score_mode)
     width = 1 if opts.modulation and ds.score_mode == "sigmoid" else ds.n_columns
     if ds.score_mode == "sigmoid":
-        if n > _SIGMOID_BINS:
+        if n > SIGMOID_BINS:
             bins: SigmoidBins = reduce(add, (f.sigmoid for f in firsts))
             scaler.fit_bins(bins, width)
         else:
@@ -210,7 +210,7 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
         return softmax_mean(n, inv_t, *(sum(s[i] for s in sums) for i in range(3)))
 
     start = None
-    if n >= _SUBSAMPLE_MIN:
+    if n >= SUBSAMPLE_MIN:
         rows = subsample_rows(n)
         local = [rows[(rows >= c.offset) & (rows < c.offset + f.n_fit_detections)] - c.offset
                  for c, f in zip(chunks, firsts, strict=True)]

@@ -38,7 +38,7 @@ from calibrators.levels import DEFAULT_DISTANCE_EDGES, check_levels, distance_bi
 from calibrators.matched import match_dump, tp_residuals
 from calibrators.metrics._common import bin_index
 from calibrators.profile import CalibratedDetections, CalibrationProfile
-from calibrators.serving import _group_name
+from calibrators.serving import group_name
 from calibrators.summary import SUMMARY_LEVELS
 
 __all__ = ["HEALTH_LEVELS", "FrameEvidence", "HealthCounts", "RegionGroups", "collect_evidence",
@@ -196,7 +196,7 @@ def region_groups(profile: CalibrationProfile, source: str | None = None) -> Reg
         names = [f"{c} {_range_text(edges[b], edges[b + 1])}" for c in profile.classes
                  for b in range(edges.size - 1)]
         return RegionGroups(tuple(names), (float("inf"),) * len(names))
-    return RegionGroups(tuple(_group_name(profile, conformal, g) for g in conformal.groups_),
+    return RegionGroups(tuple(group_name(profile, conformal, g) for g in conformal.groups_),
                         tuple(float(g.n) for g in conformal.groups_))
 
 

@@ -357,7 +357,7 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
     index = conformal.group_index(labels, distances)
     radii = np.concatenate([conformal.radius_table(levels[i:i + MAX_LEVELS])
                             for i in range(0, len(levels), MAX_LEVELS)], axis=1)[index]
-    names = {int(g): _group_name(profile, conformal, conformal.groups_[g])
+    names = {int(g): group_name(profile, conformal, conformal.groups_[g])
              for g in np.unique(index)}
     # Σ' was built from checked Σ (or a spread) by adding k·d·I: symmetric PSD, or an
     # overflow that `_check_finite` places
@@ -367,7 +367,7 @@ def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
             [names[g] for g in index.tolist()])
 
 
-def _group_name(profile: CalibrationProfile, conformal: ConformalRegions,
+def group_name(profile: CalibrationProfile, conformal: ConformalRegions,
                 group: ConformalGroup) -> str:
     """`car 15-30 m`, `pooled classes 30+ m`, ... of a conformal group."""
     who = "pooled classes" if group.label is None else profile.classes[int(group.label)]

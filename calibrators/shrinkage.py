@@ -24,16 +24,10 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from calibrators.checks import as_float_array, as_int_array
-from calibrators.depth import (
-    _check_bounds,
-    _check_min_samples,
-    add_depth_term,
-    fit_inputs,
-    per_row,
-    transform_inputs,
-)
-from calibrators.depth_nll import _Binned, _binned, _fit_k, _Terms
+from calibrators.checks import as_float_array, as_int_array, check_bounds, check_min_samples
+from calibrators.depth import add_depth_term, fit_inputs, per_row, transform_inputs
+from calibrators.depth_nll import DepthBins, DepthTerms, depth_bins
+from calibrators.depth_search import fit_k
 from calibrators.exceptions import FieldError, check_fitted
 from calibrators.json_safe import to_jsonable
 
@@ -67,12 +61,12 @@ class ShrinkageDepthScaler:
             distances: np.ndarray, classes: np.ndarray) -> ShrinkageDepthScaler:
         """Fit on `residuals [N, D]`, `covariances [N, D, D] | None`, `distances [N]` (>= 0)
         and `classes [N]` (hashable labels, e.g. ints or strs); returns self."""
-        min_samples = _check_min_samples(self.min_samples)
-        bounds = _check_bounds(self.bounds)
+        min_samples = check_min_samples(self.min_samples)
+        bounds = check_bounds(self.bounds, zero_low=True)
         scale_bounds = _check_scale_bounds(self.scale_bounds)
         r, cov, d, keys, codes, terms = fit_inputs(residuals, covariances, distances, classes)
         n, dim = r.shape
-        groups, pooled = _binned(terms, codes, len(keys))
+        groups, pooled = depth_bins(terms, codes, len(keys))
         near_q = _near_q(terms, codes, len(keys))
         fit = _PairFit(bounds, (1.0, 1.0) if cov is None else scale_bounds, float(self.xtol))
 
@@ -159,13 +153,13 @@ class ShrinkageDepthScaler:
 @dataclasses.dataclass(frozen=True)
 class _PairFit:
     """Fits `(s, k)` of one group's binned statistics: Brent on log s outside, depth
-    scaling's `_fit_k` on `k' = k/s` inside (module docstring)."""
+    scaling's `fit_k` on `k' = k/s` inside (module docstring)."""
 
     bounds: tuple[float, float]
     scale_bounds: tuple[float, float]
     xtol: float
 
-    def __call__(self, stats: _Binned, near_q: float, label: Hashable) -> tuple[float, float]:
+    def __call__(self, stats: DepthBins, near_q: float, label: Hashable) -> tuple[float, float]:
         low, high = self.scale_bounds
         if low == high:
             return low, self._k(stats, near_q, low, label)
@@ -175,7 +169,7 @@ class _PairFit:
             scaled = _at_scale(stats, near_q, s)
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", RuntimeWarning)
-                return scaled.nll(_fit_k(scaled, self._k_bounds(s), self.xtol, label))
+                return scaled.nll(fit_k(scaled, self._k_bounds(s), self.xtol, label))
 
         result = minimize_scalar(profile, bounds=(np.log(low), np.log(high)), method="bounded",
                                  options={"xatol": self.xtol})
@@ -186,15 +180,15 @@ class _PairFit:
         s = float(np.exp(log_s))
         return s, self._k(stats, near_q, s, label)
 
-    def _k(self, stats: _Binned, near_q: float, s: float, label: Hashable) -> float:
-        """The NLL-optimal k at scale `s` (warnings of `_fit_k` shown)."""
-        return s * _fit_k(_at_scale(stats, near_q, s), self._k_bounds(s), self.xtol, label)
+    def _k(self, stats: DepthBins, near_q: float, s: float, label: Hashable) -> float:
+        """The NLL-optimal k at scale `s` (warnings of `fit_k` shown)."""
+        return s * fit_k(_at_scale(stats, near_q, s), self._k_bounds(s), self.xtol, label)
 
     def _k_bounds(self, s: float) -> tuple[float, float]:
         return self.bounds[0] / s, self.bounds[1] / s
 
 
-def _at_scale(stats: _Binned, near_q: float, s: float) -> _Binned:
+def _at_scale(stats: DepthBins, near_q: float, s: float) -> DepthBins:
     """Binned statistics whose `nll(k / s)` is the NLL under `s·Σ + k·d·I`."""
     if s == 1.0:
         return stats
@@ -203,7 +197,7 @@ def _at_scale(stats: _Binned, near_q: float, s: float) -> _Binned:
                                b_zero=stats.b_zero / s)
 
 
-def _near_q(terms: _Terms, codes: np.ndarray, n_groups: int) -> np.ndarray:
+def _near_q(terms: DepthTerms, codes: np.ndarray, n_groups: int) -> np.ndarray:
     """Per group `[G]`, the sum of `q/λ` over the samples at `d = 0` (regular Σ there)."""
     near = terms.dist == 0
     if not near.any():
@@ -212,9 +206,9 @@ def _near_q(terms: _Terms, codes: np.ndarray, n_groups: int) -> np.ndarray:
     return np.bincount(codes[near], weights=ratio, minlength=n_groups)
 
 
-def _scaled_terms(terms: _Terms, s_rows: np.ndarray) -> _Terms:
+def _scaled_terms(terms: DepthTerms, s_rows: np.ndarray) -> DepthTerms:
     """`terms` with the eigenvalues of row i multiplied by `s_rows [N]`."""
-    return _Terms(terms.eig * s_rows[None, :], terms.sq, terms.dist)
+    return DepthTerms(terms.eig * s_rows[None, :], terms.sq, terms.dist)
 
 
 def _check_scale_bounds(bounds: tuple[float, float]) -> tuple[float, float]:

@@ -17,11 +17,11 @@ Labels:
 Speed, with the result unchanged (tests check both against the exact minimiser to 1e-6
 for T in [0.3, 5] and logit scales 0.3 to 30):
 - sigmoid: the NLL depends on the predicted logits `s [N]` only. With more than
-  `_SIGMOID_BINS` detections, `s` is binned once (`SigmoidBins`, error fourth order in the
+  `SIGMOID_BINS` detections, `s` is binned once (`SigmoidBins`, error fourth order in the
   bin width); the root is found first on 64x coarser bins, then on bins as coarse as the
   derivative's error bound allows there (`fit_bins`).
 - softmax: each evaluation is one cache-blocked pass over the `N x C'` logits giving the
-  NLL and its derivative (`SoftmaxSums`). From `_SUBSAMPLE_MIN` rows a seeded subsample's
+  NLL and its derivative (`SoftmaxSums`). From `SUBSAMPLE_MIN` rows a seeded subsample's
   root and curvature (`subsample_start`) give the first bracket: that point and 1.5 Newton
   steps from it; a bracket without a sign change moves to the root's side, four times as
   wide (never blindly to the bounds). About five passes in all.
@@ -41,6 +41,7 @@ from scipy.optimize import brentq
 from calibrators.checks import (
     as_float_array,
     as_int_array,
+    check_bounds,
     check_choice,
     check_finite,
     check_index,
@@ -61,8 +62,7 @@ from calibrators.temperature_nll import (
 from calibrators.temperature_search import search_log_t
 from calibrators.vocab import SCORE_MODES
 
-_SIGMOID_BINS = SIGMOID_BINS  # sigmoid: bins of the predicted logit when N exceeds this
-_SUBSAMPLE_MIN = 200_000  # softmax: from this many rows on, a subsample brackets T first
+SUBSAMPLE_MIN = 200_000  # softmax: from this many rows on, a subsample brackets T first
 _SUBSAMPLE_ROWS = 50_000  # rows of that subsample (at least; N / 20 if larger)
 _SUBSAMPLE_XTOL = 1e-4  # Brent tolerance on log T of the subsample fit
 _TINY_STEP = 10  # the subsample's own start: every 10th of its rows, searched from the bounds
@@ -101,7 +101,7 @@ class TemperatureScaler:
         z, y = _validate(logits, labels, self.mode)
         if self.mode == "softmax":
             start = None
-            if len(z) >= _SUBSAMPLE_MIN:
+            if len(z) >= SUBSAMPLE_MIN:
                 rows = subsample_rows(len(z))
                 z_sub = z[rows]
                 if not np.isfinite(z_sub).all():
@@ -109,7 +109,7 @@ class TemperatureScaler:
                 start = subsample_start(z_sub, y[rows], bounds)
             return self.fit_gradient(softmax_value_grad(z, y), len(z), z.shape[1], start)
         s, span = _predicted(z)
-        if len(s) > _SIGMOID_BINS:
+        if len(s) > SIGMOID_BINS:
             bins = SigmoidBins.from_logits(s, y, span=span, clip=False)   # span: s's own
 
             def exact(log_t: float) -> float:   # built only if the bins are not exact enough
@@ -177,7 +177,7 @@ class TemperatureScaler:
 
     def log_bounds(self) -> tuple[float, float]:
         """The search bounds on log T (checked)."""
-        low, high = _check_bounds(self.bounds)
+        low, high = check_bounds(self.bounds)
         return float(np.log(low)), float(np.log(high))
 
     def _search(self, objective: Objective, bracket: tuple[float, float],
@@ -191,7 +191,7 @@ class TemperatureScaler:
                          bounds: tuple[float, float]) -> None:
         """Set `temperature_`, `n_evaluations_`; warn when `log_t` is at the edge of bounds."""
         if min(log_t - bounds[0], bounds[1] - log_t) < 10 * float(self.xtol):
-            low, high = _check_bounds(self.bounds)
+            low, high = check_bounds(self.bounds)
             warnings.warn(f"temperature {np.exp(log_t):.6g} is at the edge of bounds "
                           f"{(low, high)}; widen bounds or check the labels", RuntimeWarning,
                           stacklevel=4)
@@ -210,16 +210,6 @@ class TemperatureScaler:
     def fit_transform(self, logits: np.ndarray, labels: np.ndarray) -> np.ndarray:
         """`fit(logits, labels).transform(logits)`."""
         return self.fit(logits, labels).transform(logits)
-
-
-def _check_bounds(bounds: tuple[float, float]) -> tuple[float, float]:
-    try:
-        low, high = (float(b) for b in bounds)
-    except (TypeError, ValueError):
-        raise ValueError(f"bounds must be a pair of numbers, got {bounds!r}") from None
-    if not (np.isfinite(low) and np.isfinite(high) and 0 < low < high):
-        raise ValueError(f"bounds must satisfy 0 < low < high (finite), got {bounds!r}")
-    return low, high
 
 
 def _validate(logits: np.ndarray, labels: np.ndarray, mode: str

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibrators import checks
-from calibrators.depth import _check_distances, _class_codes
+from calibrators.checks import check_distances, class_codes
 from calibrators.exceptions import FieldError
 from calibrators.levels import (
     DEFAULT_DISTANCE_EDGES,
@@ -70,9 +70,9 @@ def coverage_table(mahalanobis: np.ndarray, radii: np.ndarray, levels: Sequence[
     """
     q, m, r = _inputs(mahalanobis, radii, levels)
     edges = check_distance_edges(distance_edges)
-    d = _check_distances(distances, None)
+    d = check_distances(distances, None)
     checks.check_length("distances", d, m.shape[0], "mahalanobis")
-    keys, codes = _class_codes(classes, m.shape[0])
+    keys, codes = class_codes(classes, m.shape[0])
     covered = _covered(m, r)
     cell = codes * (edges.size - 1) + distance_bins(d, edges)
     n_cells = len(keys) * (edges.size - 1)

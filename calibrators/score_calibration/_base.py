@@ -15,10 +15,11 @@ import numpy as np
 from calibrators.checks import (
     as_float_array,
     as_int_array,
+    check_distances,
     check_index,
     check_length,
+    check_min_samples,
 )
-from calibrators.depth import _check_distances, _check_min_samples
 from calibrators.exceptions import FieldError, check_fitted
 from calibrators.json_safe import to_jsonable
 from calibrators.metrics._common import as_binary, check_n_bins, check_nonempty
@@ -62,7 +63,7 @@ class ClasswiseCalibrator:
         """Fit on the labelled class's logit `z [N]`, `labels [N]` in [0, n_classes), `tp [N]`
         (bool or 0/1: the detection is a true positive) and optionally `distances [N]` (m,
         >= 0; used only by a range term); returns self."""
-        min_samples = _check_min_samples(self.min_samples)
+        min_samples = check_min_samples(self.min_samples)
         min_each = check_n_bins("min_each", self.min_each, minimum=1)
         self._check_hyper()
         c = check_n_bins("n_classes", n_classes, minimum=1)
@@ -167,7 +168,7 @@ class ClasswiseCalibrator:
                 raise FieldError("distances", f"distances is required: this "
                                  f"{type(self).__name__} has a range term")
             return x, y, None
-        d = _check_distances(distances, None)
+        d = check_distances(distances, None)
         check_length("distances", d, x.shape[0], "z")
         return x, y, d
 

@@ -12,8 +12,9 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit
 
+from calibrators.checks import check_bounds
 from calibrators.score_calibration._base import ClasswiseCalibrator
-from calibrators.temperature import TemperatureScaler, _check_bounds
+from calibrators.temperature import TemperatureScaler
 
 
 class ClassTemperatureScaler(ClasswiseCalibrator):
@@ -42,7 +43,7 @@ class ClassTemperatureScaler(ClasswiseCalibrator):
         self.xtol = xtol
 
     def _check_hyper(self) -> None:
-        _check_bounds(self.bounds)
+        check_bounds(self.bounds)
 
     def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None) -> np.ndarray:
         scaler = TemperatureScaler(mode="sigmoid", bounds=self.bounds, xtol=self.xtol)

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrators._spectral import _spectral, _spectral_2x2
-from calibrators.depth import DepthScaler, _class_codes, add_depth_term
-from calibrators.depth_nll import _MANTISSA_BITS, _OCTAVES, _binned, _brent, _log_bin, _Terms
+from calibrators._spectral import spectral, spectral_2x2
+from calibrators.checks import class_codes
+from calibrators.depth import DepthScaler, add_depth_term
+from calibrators.depth_nll import MANTISSA_BITS, OCTAVES, DepthTerms, depth_bins, log_bin
+from calibrators.depth_search import brent_k
 from calibrators.exceptions import NotFittedError
 
 K_TRUE = {"car": 0.02, "pedestrian": 0.08, "barrier": 0.3}
@@ -68,7 +70,7 @@ def test_nll_terms_match_the_direct_gaussian_nll():
     _, logdet = np.linalg.slogdet(full)
     maha = np.einsum("ni,ni->n", r, np.linalg.solve(full, r[..., None])[..., 0])
     direct = np.mean(0.5 * (logdet + maha + 3 * np.log(2 * np.pi)))
-    assert _Terms.build(r, cov, d).nll(k) == pytest.approx(direct, rel=1e-10)
+    assert DepthTerms.build(r, cov, d).nll(k) == pytest.approx(direct, rel=1e-10)
 
 
 def test_closed_form_2x2_matches_eigh():
@@ -77,8 +79,8 @@ def test_closed_form_2x2_matches_eigh():
     cov[:5] = [np.eye(2) * 2.0, np.diag([1.0, 3.0]), np.diag([3.0, 1.0]), np.zeros((2, 2)),
                [[1.0, 1.0], [1.0, 1.0]]]  # isotropic, diagonal both ways, zero, rank 1
     r = rng.normal(size=(400, 2))
-    eig2, sq2 = _spectral_2x2(cov, r)
-    eig, sq = _spectral(cov, r)
+    eig2, sq2 = spectral_2x2(cov, r)
+    eig, sq = spectral(cov, r)
     np.testing.assert_allclose(eig2, eig, atol=1e-12)
     distinct = np.ones(400, dtype=bool)
     distinct[[0, 3]] = False  # equal eigenvalues: any split of |r|² is right
@@ -86,7 +88,8 @@ def test_closed_form_2x2_matches_eigh():
     np.testing.assert_allclose(sq2.sum(axis=0), (r * r).sum(axis=1))
     d = rng.uniform(1.0, 60.0, 400)
     for k in (1e-4, 0.05, 3.0):
-        assert _Terms(eig2, sq2, d).nll(k) == pytest.approx(_Terms(eig, sq, d).nll(k), rel=1e-12)
+        assert DepthTerms(eig2, sq2, d).nll(k) == pytest.approx(DepthTerms(eig, sq, d).nll(k),
+                                                                rel=1e-12)
 
 
 def test_small_classes_fall_back_to_pooled_k():
@@ -213,10 +216,11 @@ def test_bad_hyper_parameters(kwargs, match):
 
 
 # -- the binned Brent search equals the exact minimiser -----------------------------------------
-def exact_k(terms: _Terms, members: np.ndarray, bounds=(0.0, 25.0)) -> float:
-    """k minimising the exact `_Terms.nll` of `members` (Brent to 1e-11 on log k, then k = 0)."""
-    sub = _Terms(terms.eig[:, members], terms.sq[:, members], terms.dist[members])
-    k, nll = _brent(sub, bounds[0], bounds[1], 1e-11)
+def exact_k(terms: DepthTerms, members: np.ndarray, bounds=(0.0, 25.0)) -> float:
+    """k minimising the exact `DepthTerms.nll` of `members` (Brent to 1e-11 on log k, then
+    k = 0)."""
+    sub = DepthTerms(terms.eig[:, members], terms.sq[:, members], terms.dist[members])
+    k, nll = brent_k(sub, bounds[0], bounds[1], 1e-11)
     return bounds[0] if sub.nll(bounds[0]) <= nll else k
 
 
@@ -240,11 +244,11 @@ def wide_draw(dim: int, seed: int):
 def test_binned_fit_equals_the_exact_minimiser(dim, seed):
     r, cov, d, classes = wide_draw(dim, seed)
     scaler = DepthScaler().fit(r, cov, d, classes)
-    terms = _Terms.build(r, cov, d)
+    terms = DepthTerms.build(r, cov, d)
     for name in scaler.k_:
         members = np.flatnonzero(classes == name)
         assert scaler.k_[name] == pytest.approx(exact_k(terms, members), rel=1e-6), name
-        sub = _Terms(terms.eig[:, members], terms.sq[:, members], terms.dist[members])
+        sub = DepthTerms(terms.eig[:, members], terms.sq[:, members], terms.dist[members])
         assert scaler.nll_[name] == pytest.approx(sub.nll(scaler.k_[name]), rel=1e-12)
     assert scaler.pooled_k_ == pytest.approx(exact_k(terms, np.arange(len(r))), rel=1e-6)
     assert scaler.pooled_nll_ == pytest.approx(terms.nll(scaler.pooled_k_), rel=1e-12)
@@ -253,9 +257,9 @@ def test_binned_fit_equals_the_exact_minimiser(dim, seed):
 def test_binned_nll_is_close_to_the_exact_nll():
     r, cov, d, classes = wide_draw(2, 3)
     cov[(np.arange(len(r)) % 5 == 1) & (d > 0)] = 0.0  # a = 0 pairs are summed exactly
-    terms = _Terms.build(r, cov, d)
-    keys, codes = _class_codes(classes, len(classes))
-    groups, pooled = _binned(terms, codes, len(keys))
+    terms = DepthTerms.build(r, cov, d)
+    keys, codes = class_codes(classes, len(classes))
+    groups, pooled = depth_bins(terms, codes, len(keys))
     assert sum(g.n for g in groups) == pooled.n == len(r)
     for k in (1e-4, 0.03, 0.5, 7.0):
         assert pooled.nll(k) == pytest.approx(terms.nll(k), rel=1e-7)
@@ -278,26 +282,26 @@ def test_without_covariance_the_binned_search_is_exact():
 def test_log_bins_are_monotone_and_fine():
     a = np.sort(np.random.default_rng(1).uniform(0.0, 1.0, 5000) ** 8)
     a[:3] = 0.0
-    key, n_bins = _log_bin(a)
+    key, n_bins = log_bin(a)
     assert (key[:3] == 0).all() and (key[3:] >= 1).all() and (np.diff(key) >= 0).all()
-    assert key.max() == n_bins == _OCTAVES << _MANTISSA_BITS  # a spans more than 64 octaves
+    assert key.max() == n_bins == OCTAVES << MANTISSA_BITS  # a spans more than 64 octaves
     for b in np.unique(key[key > 1]):
         inside = a[key == b]
-        assert inside.max() / inside.min() - 1 <= 2.0**-_MANTISSA_BITS
-    assert a[key == 1].max() <= a.max() * 2.0**-(_OCTAVES - 1)  # the floor bin: negligible a
-    narrow, n_bins = _log_bin(np.array([[1.0, 1.5], [0.0, 1.999]]))
-    per_octave = 1 << _MANTISSA_BITS  # 1.0 is the lowest bin; 1.5 and 1.999 the same octave
+        assert inside.max() / inside.min() - 1 <= 2.0**-MANTISSA_BITS
+    assert a[key == 1].max() <= a.max() * 2.0**-(OCTAVES - 1)  # the floor bin: negligible a
+    narrow, n_bins = log_bin(np.array([[1.0, 1.5], [0.0, 1.999]]))
+    per_octave = 1 << MANTISSA_BITS  # 1.0 is the lowest bin; 1.5 and 1.999 the same octave
     top = int(0.999 * per_octave) + 1
     assert n_bins == top and narrow.tolist() == [[1, per_octave // 2 + 1], [0, top]]
-    assert _log_bin(np.zeros((2, 0)))[0].shape == (2, 0)
-    assert _log_bin(np.zeros(3))[0].tolist() == [0, 0, 0]
+    assert log_bin(np.zeros((2, 0)))[0].shape == (2, 0)
+    assert log_bin(np.zeros(3))[0].tolist() == [0, 0, 0]
 
 
 @pytest.mark.parametrize("classes", [
     np.array([3, -2, 3, 7, -2]), np.array([5, 10**12, 5]), np.array(["b", "a", "b"]),
     np.array([2, 2, 2], dtype=np.uint8)])
 def test_class_codes_match_unique(classes):
-    keys, codes = _class_codes(classes, len(classes))
+    keys, codes = class_codes(classes, len(classes))
     want_keys, want_codes = np.unique(classes, return_inverse=True)
     assert keys == want_keys.tolist()
     np.testing.assert_array_equal(codes, want_codes)

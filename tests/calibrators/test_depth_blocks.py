@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from calibrators import _spectral, depth_nll
-from calibrators.depth_nll import BinSums, _log_bin_low, _Terms
+from calibrators.depth_nll import BinSums, DepthTerms, log_bin_low
 
 
 def psd_2x2(rng: np.random.Generator, n: int, huge: bool = True) -> np.ndarray:
@@ -21,7 +21,7 @@ def psd_2x2(rng: np.random.Generator, n: int, huge: bool = True) -> np.ndarray:
     return cov
 
 
-def one_pass_sums(terms: _Terms, codes: np.ndarray, n_groups: int) -> tuple:
+def one_pass_sums(terms: DepthTerms, codes: np.ndarray, n_groups: int) -> tuple:
     """`BinSums.build` as one `np.bincount` over all `[D, N]` pairs: `(n, const, low, sums)`."""
     near = terms.dist == 0
     with np.errstate(divide="ignore"):
@@ -31,7 +31,7 @@ def one_pass_sums(terms: _Terms, codes: np.ndarray, n_groups: int) -> tuple:
     const = np.bincount(codes, weights=row_const, minlength=n_groups)
     far = ~near
     a, b = terms.eig[:, far] / terms.dist[far], terms.sq[:, far] / terms.dist[far]
-    key, n_bins, low = _log_bin_low(a)
+    key, n_bins, low = log_bin_low(a)
     key = (key + codes[far] * (n_bins + 1)).ravel()
     size = n_groups * (n_bins + 1)
     sums = np.stack([np.bincount(key, weights=w, minlength=size).reshape(n_groups, -1)
@@ -43,9 +43,9 @@ def test_blocks_of_the_closed_form_2x2_equal_one_block(monkeypatch):
     rng = np.random.default_rng(0)
     cov, r = psd_2x2(rng, 200), rng.normal(size=(200, 2))
     r[::13] *= 1e70
-    whole = _spectral._spectral_2x2(cov, r)
+    whole = _spectral.spectral_2x2(cov, r)
     monkeypatch.setattr(_spectral, "_BLOCK", 7)
-    blocks = _spectral._spectral_2x2(cov, r)
+    blocks = _spectral.spectral_2x2(cov, r)
     for x, y in zip(whole, blocks, strict=True):
         np.testing.assert_array_equal(x, y)
 
@@ -64,7 +64,7 @@ def test_blocks_name_the_row_one_block_would(monkeypatch, psd_row, asym_row, mat
         cov[asym_row, 0, 1] += 0.5
     monkeypatch.setattr(_spectral, "_BLOCK", 5)
     with pytest.raises(ValueError, match=match):
-        _spectral._spectral_2x2(cov, r)
+        _spectral.spectral_2x2(cov, r)
 
 
 @pytest.mark.parametrize("near", [True, False])
@@ -72,7 +72,7 @@ def test_blocks_name_the_row_one_block_would(monkeypatch, psd_row, asym_row, mat
 def test_bin_sums_in_blocks_equal_one_bincount(monkeypatch, kind, near):
     """Bit for bit, with (`near`) d = 0 rows inside blocks, else with the grid taken while
     decomposing; `plain`: every a > 0 within the grid, `zeros`: some a = 0, `wide`: a over
-    more than `_OCTAVES` octaves (the grid's floor)."""
+    more than `OCTAVES` octaves (the grid's floor)."""
     rng = np.random.default_rng(2)
     n = 500
     a = rng.normal(0.0, 0.7, size=(n, 2, 2))
@@ -85,7 +85,7 @@ def test_bin_sums_in_blocks_equal_one_bincount(monkeypatch, kind, near):
     codes = rng.integers(0, 3, size=n)
     monkeypatch.setattr(depth_nll, "_CHUNK", 16)
     monkeypatch.setattr(_spectral, "_BLOCK", 9)
-    terms = _Terms.build(r, cov, d)
+    terms = DepthTerms.build(r, cov, d)
     assert (terms.grid is None) == near
     got = BinSums.build(terms, codes, 3)
     n_ref, const, low, sums = one_pass_sums(terms, codes, 3)
@@ -97,8 +97,8 @@ def test_bin_sums_in_blocks_equal_one_bincount(monkeypatch, kind, near):
 
 def test_bin_sums_without_any_positive_a():
     r, d = np.ones((4, 2)), np.array([1.0, 2.0, 3.0, 4.0])
-    got = BinSums.build(_Terms.build(r, None, d), np.array([0, 1, 1, 0]), 2)
-    n_ref, const, low, sums = one_pass_sums(_Terms.build(r, None, d), np.array([0, 1, 1, 0]), 2)
+    got = BinSums.build(DepthTerms.build(r, None, d), np.array([0, 1, 1, 0]), 2)
+    n_ref, const, low, sums = one_pass_sums(DepthTerms.build(r, None, d), np.array([0, 1, 1, 0]), 2)
     assert got.low == low == 0 and got.sums.shape == sums.shape == (4, 2, 1)
     np.testing.assert_array_equal(got.sums, sums)
     np.testing.assert_array_equal(got.const, const)
@@ -107,7 +107,7 @@ def test_bin_sums_without_any_positive_a():
 def test_fitted_nll_equals_group_and_pooled_nll(monkeypatch):
     rng = np.random.default_rng(3)
     cov, r = psd_2x2(rng, 300) * 1e-3, rng.normal(size=(300, 2))
-    terms = _Terms.build(r, cov, rng.uniform(1.0, 60.0, size=300))
+    terms = DepthTerms.build(r, cov, rng.uniform(1.0, 60.0, size=300))
     codes, k = rng.integers(0, 4, size=300), np.array([0.0, 0.01, 0.1, 1.0])
     monkeypatch.setattr(depth_nll, "_CHUNK", 32)
     group, pooled = terms.fitted_nll(k, codes, 0.05)

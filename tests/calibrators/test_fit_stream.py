@@ -8,7 +8,7 @@ import pytest
 
 from calibrators import fit_stream, temperature
 from calibrators.depth import fit_inputs
-from calibrators.depth_nll import BinSums, _binned
+from calibrators.depth_nll import BinSums, depth_bins
 from calibrators.fit import fit_profile
 from calibrators.fit_stream import check_stream_options, fit_profile_stream
 from calibrators.io import load_parquet, save_parquet
@@ -78,7 +78,7 @@ def assert_close_tree(a, b, path="report"):
 
 def test_binned_sigmoid_path_equals_the_in_memory_fit(tmp_path):
     dump = synthetic_dump(n_frames=360, n_gt_per_frame=100, seed=9, n_layers=1)
-    assert dump.n_detections > temperature._SIGMOID_BINS   # the binned search is used
+    assert dump.n_detections > temperature.SIGMOID_BINS   # the binned search is used
     streamed, in_memory = fit_both(tmp_path, dump, rows_per_part=20_000, calibration=0.0,
                                    other_sources=False)
     assert_same_profile(streamed, in_memory)
@@ -87,8 +87,8 @@ def test_binned_sigmoid_path_equals_the_in_memory_fit(tmp_path):
 
 def test_subsampled_softmax_path_equals_the_in_memory_fit(tmp_path, monkeypatch):
     # the subsample bracket from 2,000 rows on (both fits read the threshold at call time)
-    monkeypatch.setattr(temperature, "_SUBSAMPLE_MIN", 2_000)
-    monkeypatch.setattr(fit_stream, "_SUBSAMPLE_MIN", 2_000)
+    monkeypatch.setattr(temperature, "SUBSAMPLE_MIN", 2_000)
+    monkeypatch.setattr(fit_stream, "SUBSAMPLE_MIN", 2_000)
     monkeypatch.setattr(temperature, "_SUBSAMPLE_ROWS", 500)
     dump = synthetic_dump(n_frames=60, n_gt_per_frame=20, score_mode="softmax", seed=10)
     streamed, in_memory = fit_both(tmp_path, dump, rows_per_part=400, calibration=0.0)
@@ -152,7 +152,7 @@ def test_bin_sums_of_chunks_add_up_to_the_whole():
     d[:5] = 0.0
     codes = rng.integers(0, 4, n)
     terms = fit_inputs(r, cov, d, codes)[5]
-    groups, pooled = _binned(terms, codes, 4)
+    groups, pooled = depth_bins(terms, codes, 4)
     parts = np.array_split(rng.permutation(n), 3)
     total = None
     for rows in parts:

@@ -10,10 +10,10 @@ from scipy.optimize import minimize_scalar
 from scipy.special import expit, softmax
 
 from calibrators.depth import DepthScaler
-from calibrators.depth_nll import _Terms
+from calibrators.depth_nll import DepthTerms
 from calibrators.temperature import (
-    _SIGMOID_BINS,
-    _SUBSAMPLE_MIN,
+    SIGMOID_BINS,
+    SUBSAMPLE_MIN,
     TemperatureScaler,
     _sigmoid_nll,
     _softmax_nll,
@@ -31,7 +31,7 @@ def exact_minimiser(objective, bounds) -> float:
 
 @pytest.mark.parametrize("t_true, scale", CASES)
 def test_sigmoid_fit_is_exact_for_any_temperature_and_scale(t_true, scale):
-    n = _SIGMOID_BINS + 5_000   # the binned search, bracketed on coarsened bins
+    n = SIGMOID_BINS + 5_000   # the binned search, bracketed on coarsened bins
     rng = np.random.default_rng(int(100 * t_true + scale))
     z = rng.normal(0.0, scale, (n, 1)) - 0.5 * scale
     y = (rng.random(n) < expit(z[:, 0] / t_true)).astype(np.int64)
@@ -45,7 +45,7 @@ def test_sigmoid_fit_is_exact_for_any_temperature_and_scale(t_true, scale):
 
 @pytest.mark.parametrize("t_true, scale", CASES)
 def test_softmax_fit_is_exact_for_any_temperature_and_scale(t_true, scale):
-    n, width = _SUBSAMPLE_MIN, 7   # the subsample-bracketed search
+    n, width = SUBSAMPLE_MIN, 7   # the subsample-bracketed search
     rng = np.random.default_rng(int(100 * t_true + scale) + 1)
     z = rng.normal(0.0, scale, (n, width))
     cdf = np.cumsum(softmax(z / t_true, axis=1), axis=1)
@@ -70,7 +70,7 @@ def test_depth_k_is_exact_and_recovered_over_four_decades(k_true, d_max):
     full = cov + (k_true * d)[:, None, None] * np.eye(2)
     r = np.einsum("nij,nj->ni", np.linalg.cholesky(full), rng.normal(size=(n, 2)))
     scaler = DepthScaler(min_samples=10**9).fit(r, cov, d, np.zeros(n, dtype=int))
-    terms = _Terms.build(r, cov, d)
+    terms = DepthTerms.build(r, cov, d)
     exact = minimize_scalar(lambda u: terms.nll(float(np.exp(u))),
                             bounds=(np.log(1e-8), np.log(25.0)), method="bounded",
                             options={"xatol": 1e-11})

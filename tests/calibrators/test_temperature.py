@@ -11,8 +11,8 @@ from calibrators import temperature
 from calibrators.exceptions import NotFittedError
 from calibrators.scores import class_probabilities
 from calibrators.temperature import (
-    _SIGMOID_BINS,
-    _SUBSAMPLE_MIN,
+    SIGMOID_BINS,
+    SUBSAMPLE_MIN,
     TemperatureScaler,
     _binned_sigmoid_nll,
     _sigmoid_nll,
@@ -172,7 +172,7 @@ def exact_temperature(objective, bounds=(0.01, 100.0)) -> float:
 
 @pytest.mark.parametrize("seed, scale, shift", [(0, 3.0, -2.0), (1, 0.3, 0.0), (2, 12.0, 4.0)])
 def test_binned_sigmoid_fit_equals_the_exact_minimiser(seed, scale, shift):
-    n = 3 * _SIGMOID_BINS  # above the threshold: the binned search is used
+    n = 3 * SIGMOID_BINS  # above the threshold: the binned search is used
     rng = np.random.default_rng(seed)
     z = rng.standard_t(3, size=(n, 4)) * scale + shift  # heavy tails stretch the bins
     y = (rng.random(n) < expit(z.max(axis=1) / 1.3)).astype(np.int64)
@@ -199,7 +199,7 @@ def test_binned_sigmoid_nll_error_is_within_its_bound():
 
 @pytest.mark.parametrize("t_true", [0.4, 1.5, 6.0])
 def test_softmax_subsample_bracket_fit_equals_the_exact_minimiser(t_true):
-    z, y = softmax_sample(t_true, n=_SUBSAMPLE_MIN, n_classes=6, seed=5)
+    z, y = softmax_sample(t_true, n=SUBSAMPLE_MIN, n_classes=6, seed=5)
     scaler = TemperatureScaler(mode="softmax").fit(z, y)
     exact = exact_temperature(_softmax_nll(z, y))
     assert scaler.temperature_ == pytest.approx(exact, rel=1e-6)
@@ -207,7 +207,7 @@ def test_softmax_subsample_bracket_fit_equals_the_exact_minimiser(t_true):
 
 
 def test_softmax_bracket_that_misses_is_searched_again(monkeypatch):
-    z, y = softmax_sample(1.7, n=_SUBSAMPLE_MIN, n_classes=4, seed=6)
+    z, y = softmax_sample(1.7, n=SUBSAMPLE_MIN, n_classes=4, seed=6)
     full = TemperatureScaler(mode="softmax").fit(z, y)
     # a first bracket far shorter than the Newton step: the root lies beyond its edge
     monkeypatch.setattr(temperature, "_NEWTON_MARGIN", 1e-4)
