@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import expit, softmax
 
-from calibrators.depth import DepthScaler
+from calibrators.covariance import DepthScaler
 from calibrators.temperature import TemperatureScaler
 
 N_CLASSES = 10

@@ -24,9 +24,8 @@ exported here; the defaults (`ELLIPSE_CONFIDENCE`, `DEFAULT_LEVELS`, `MATCH_THRE
 from calibrators import io, metrics
 from calibrators.apply import apply_profile, check_profile_fits
 from calibrators.conformal import ConformalRegions
-from calibrators.covariance import layer_spread
+from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, layer_spread
 from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
-from calibrators.depth import DepthScaler
 from calibrators.detections import Detections
 from calibrators.dump import Dump
 from calibrators.ellipse import Ellipse, ellipse
@@ -55,7 +54,6 @@ from calibrators.score_calibration import (
     IsotonicCalibrator,
     PlattScaler,
 )
-from calibrators.shrinkage import ShrinkageDepthScaler
 from calibrators.summary import format_table, summarize
 from calibrators.summary_types import ProfileReport, Summary
 from calibrators.temperature import TemperatureScaler

@@ -19,11 +19,10 @@ import numpy as np
 
 from calibrators import metrics
 from calibrators.conformal import ConformalRegions
-from calibrators.depth import DepthScaler
+from calibrators.covariance import DepthScaler, ShrinkageDepthScaler
 from calibrators.dump import Dump
 from calibrators.matched import raw_covariances, tp_residuals
 from calibrators.matching import MatchResult
-from calibrators.shrinkage import ShrinkageDepthScaler
 from calibrators.vocab import COV_METHODS
 
 __all__ = ["CovarianceFit", "RegionFit", "covariance_fit", "fit_covariance_stage",

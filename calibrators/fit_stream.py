@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.depth import DepthScaler
+from calibrators.covariance import DepthScaler
 from calibrators.distributed import Mapper
 from calibrators.dump import concat_frames
 from calibrators.fit import base_profile, check_fit_input, selection_of, source_stage, versioned

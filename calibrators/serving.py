@@ -38,9 +38,8 @@ from calibrators.checks import (
     check_length,
     check_probabilities,
 )
-from calibrators.covariance import source_covariance
+from calibrators.covariance import add_depth_term, source_covariance
 from calibrators.defaults import ELLIPSE_CONFIDENCE
-from calibrators.depth import add_depth_term
 from calibrators.ellipse import Ellipse, ellipse, radius_ellipses
 from calibrators.exceptions import FieldError
 from calibrators.hypotheses import check_hypotheses

@@ -15,8 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.depth import fit_inputs
-from calibrators.depth_nll import BinSums
+from calibrators.covariance import BinSums, fit_inputs
 from calibrators.dump import Dump
 from calibrators.io.parquet import ParquetDataset
 from calibrators.matched import (

@@ -5,11 +5,17 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrators._spectral import spectral, spectral_2x2
 from calibrators.checks import class_codes
-from calibrators.depth import DepthScaler, add_depth_term
-from calibrators.depth_nll import MANTISSA_BITS, OCTAVES, DepthTerms, depth_bins, log_bin
-from calibrators.depth_search import brent_k
+from calibrators.covariance import DepthScaler, add_depth_term
+from calibrators.covariance._depth_nll import (
+    MANTISSA_BITS,
+    OCTAVES,
+    DepthTerms,
+    depth_bins,
+    log_bin,
+)
+from calibrators.covariance._depth_search import brent_k
+from calibrators.covariance._spectral import spectral, spectral_2x2
 from calibrators.exceptions import NotFittedError
 
 K_TRUE = {"car": 0.02, "pedestrian": 0.08, "barrier": 0.3}

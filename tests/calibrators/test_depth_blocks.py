@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrators import _spectral, depth_nll
-from calibrators.depth_nll import BinSums, DepthTerms, log_bin_low
+from calibrators.covariance import _depth_nll as depth_nll
+from calibrators.covariance import _spectral
+from calibrators.covariance._depth_nll import BinSums, DepthTerms, log_bin_low
 
 
 def psd_2x2(rng: np.random.Generator, n: int, huge: bool = True) -> np.ndarray:

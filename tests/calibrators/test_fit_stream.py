@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 
 from calibrators import fit_stream, temperature
-from calibrators.depth import fit_inputs
-from calibrators.depth_nll import BinSums, depth_bins
+from calibrators.covariance import fit_inputs
+from calibrators.covariance._depth_nll import BinSums, depth_bins
 from calibrators.fit import fit_profile
 from calibrators.fit_stream import check_stream_options, fit_profile_stream
 from calibrators.io import load_parquet, save_parquet

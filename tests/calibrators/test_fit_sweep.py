@@ -9,8 +9,8 @@ import pytest
 from scipy.optimize import minimize_scalar
 from scipy.special import expit, softmax
 
-from calibrators.depth import DepthScaler
-from calibrators.depth_nll import DepthTerms
+from calibrators.covariance import DepthScaler
+from calibrators.covariance._depth_nll import DepthTerms
 from calibrators.temperature import (
     SIGMOID_BINS,
     SUBSAMPLE_MIN,

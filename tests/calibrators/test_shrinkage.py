@@ -8,10 +8,9 @@ import json
 import numpy as np
 import pytest
 
-from calibrators.depth import DepthScaler, add_depth_term
+from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, add_depth_term
 from calibrators.exceptions import NotFittedError
 from calibrators.metrics import regression_nll
-from calibrators.shrinkage import ShrinkageDepthScaler
 
 TRUTH = {"car": (0.5, 0.02), "pedestrian": (2.0, 0.01), "barrier": (1.0, 0.05)}
 

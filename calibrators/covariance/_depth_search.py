@@ -1,5 +1,5 @@
 """Bounded Brent's minimisation of a depth-scaling NLL over `k` (on log k), for the exact
-(`DepthTerms`) and binned (`DepthBins`) NLLs of `calibrators.depth_nll`."""
+(`DepthTerms`) and binned (`DepthBins`) NLLs of `_depth_nll`."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 if TYPE_CHECKING:
-    from calibrators.depth_nll import DepthBins, DepthTerms
+    from calibrators.covariance._depth_nll import DepthBins, DepthTerms
 
 _WIDEN = 100.0  # an optimum at the upper bound is searched again once up to 100 x the bound
 

@@ -13,7 +13,7 @@ Brent does not even need O(N·D) steps: for `d_i > 0`, with `a = λ/d` and `b = 
 is `log d + log(a + k) + b/(a + k)`, a function of `(a, b)` alone. The pairs `(i, j)` are
 binned once on a fine logarithmic grid of `a` (relative bin width 2e-3, one grid for all
 classes, so the pooled statistics are the sums of the per-class ones) and Brent runs on
-per-bin counts, sums and means (`calibrators.depth_nll`), O(bins) per step and second order
+per-bin counts, sums and means (`_depth_nll`), O(bins) per step and second order
 in the bin width. The reported NLLs are exact (one pass over the data at the fitted k); the
 tests check that the fitted k equal the minimisers of the exact NLL to 1e-6.
 """
@@ -32,8 +32,8 @@ from calibrators.checks import (
     check_min_samples,
     class_codes,
 )
-from calibrators.depth_nll import DepthBins, DepthTerms, depth_bins
-from calibrators.depth_search import fit_k
+from calibrators.covariance._depth_nll import DepthBins, DepthTerms, depth_bins
+from calibrators.covariance._depth_search import fit_k
 from calibrators.exceptions import FieldError, check_fitted
 
 
@@ -79,7 +79,7 @@ class DepthScaler:
 
     def fit_binned(self, groups: list[DepthBins], pooled: DepthBins, keys: list, n_dims: int
                    ) -> DepthScaler:
-        """Fit from binned statistics (`calibrators.depth_nll.BinSums.finish()`) of the
+        """Fit from binned statistics (`_depth_nll.BinSums.finish()`) of the
         groups named `keys` and of all of them pooled, as `fit` does after binning: the same
         `k_`, `pooled_k_`, `fallback_classes_`, `n_samples_` (a streamed fit merges the
         statistics of chunks of the data). `nll_` and `pooled_nll_` are None here (they need

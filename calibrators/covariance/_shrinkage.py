@@ -1,7 +1,7 @@
 """Shrinkage depth scaling: `Σ' = s_c · Σ + k_c · d · I` with `s_c > 0`, `k_c >= 0` per class.
 
 Detectors often over-state their spread near the ego and under-state it far away; one
-additive `k` (`calibrators.depth`, the case `s = 1`) cannot fix both, a scale of `Σ` plus a
+additive `k` (`_depth`, the case `s = 1`) cannot fix both, a scale of `Σ` plus a
 range term can. `(s_c, k_c)` minimise the mean Gaussian NLL of the class's matched residuals:
 bounded Brent on `log s`, and for each `s` the depth-scaling Brent on `k`.
 
@@ -25,9 +25,9 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from calibrators.checks import as_float_array, as_int_array, check_bounds, check_min_samples
-from calibrators.depth import add_depth_term, fit_inputs, per_row, transform_inputs
-from calibrators.depth_nll import DepthBins, DepthTerms, depth_bins
-from calibrators.depth_search import fit_k
+from calibrators.covariance._depth import add_depth_term, fit_inputs, per_row, transform_inputs
+from calibrators.covariance._depth_nll import DepthBins, DepthTerms, depth_bins
+from calibrators.covariance._depth_search import fit_k
 from calibrators.exceptions import FieldError, check_fitted
 from calibrators.json_safe import to_jsonable
 

@@ -1,7 +1,7 @@
 """The Gaussian NLL of depth scaling as a function of `k`, exact (`DepthTerms`) and binned
-(`DepthBins`), on the grid of `calibrators.depth_grid`, searched by `calibrators.depth_search`
+(`DepthBins`), on the grid of `_depth_grid`, searched by `_depth_search`
 (`fit_k`); used by `DepthScaler` and `ShrinkageDepthScaler`. The math is in the docstring
-of `calibrators.depth`.
+of `_depth`.
 """
 
 from __future__ import annotations
@@ -10,8 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators._spectral import spectral, spectral_2x2
-from calibrators.depth_grid import (  # noqa: F401
+from calibrators.covariance._depth_grid import (  # noqa: F401
     GRID_BINS,
     MANTISSA_BITS,
     OCTAVES,
@@ -20,6 +19,7 @@ from calibrators.depth_grid import (  # noqa: F401
     log_bin_low,
     raw_key,
 )
+from calibrators.covariance._spectral import spectral, spectral_2x2
 
 _LOG_2PI = float(np.log(2.0 * np.pi))
 _CHUNK = 1 << 15  # samples per block of the NLL and binning loops: buffers stay in the cache
@@ -186,7 +186,7 @@ class DepthBins:
 
 @dataclass(frozen=True)
 class BinSums:
-    """Additive per-group sums behind `DepthBins` (module docstring of `calibrators.depth`).
+    """Additive per-group sums behind `DepthBins` (module docstring of `_depth`).
 
     `n [G]` samples and `const [G]` (sum of the k-free terms) per group, and `sums [4, G,
     1 + B]`: the sums of 1, a, b and a·b per group and bin; column 0 holds the pairs with

@@ -1,0 +1,23 @@
+"""Covariance: where a detection's box covariance comes from, and how it is scaled.
+
+- sources (`_sources`): the one dispatch from a covariance source name (`given`, `layers`,
+  `hypotheses`, `none`) to the arrays it reads (`SOURCE_ARRAYS`) and the uncalibrated Σ it
+  gives (`source_covariance`); `layer_spread`, the spread across decoder layers.
+- depth scaling (`_depth`, with its NLL `_depth_nll` on the log-distance grid `_depth_grid`,
+  searched by `_depth_search`, over the eigen-decomposition of `_spectral`):
+  `Σ' = Σ + k_c·d·I`, `DepthScaler`.
+- shrinkage (`_shrinkage`): `Σ' = s_c·Σ + k_c·d·I`, `ShrinkageDepthScaler`.
+"""
+
+from calibrators.covariance._depth import DepthScaler, add_depth_term, fit_inputs
+from calibrators.covariance._depth_nll import BinSums
+from calibrators.covariance._shrinkage import ShrinkageDepthScaler
+from calibrators.covariance._sources import (
+    SOURCE_ARRAYS,
+    dim_indices,
+    layer_spread,
+    source_covariance,
+)
+
+__all__ = ["SOURCE_ARRAYS", "BinSums", "DepthScaler", "ShrinkageDepthScaler", "add_depth_term",
+           "dim_indices", "fit_inputs", "layer_spread", "source_covariance"]
