@@ -23,7 +23,7 @@ from calibrators.defaults import DEFAULT_LEVELS
 from calibrators.detections import WIRE_NAMES, Detections, detections_from_records
 from calibrators.exceptions import FieldError
 from calibrators.io.nuscenes_batch import calibrated_document, detections_from_nuscenes
-from calibrators.levels import check_levels
+from calibrators.regions import check_levels
 from calibrators.serving import CalibratedDetections
 
 Locate = Callable[[int, int], list[str | int]]

@@ -218,7 +218,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 def _levels(values: list[str]) -> list[float]:
     """`--levels` as floats, checked by the library (at most 20, distinct, in (0, 1))."""
     from calibrators.exceptions import FieldError
-    from calibrators.levels import check_levels
+    from calibrators.regions import check_levels
 
     try:
         return check_levels([float(v) for v in values], "--levels").tolist()

@@ -23,12 +23,10 @@ exported here; the defaults (`ELLIPSE_CONFIDENCE`, `DEFAULT_LEVELS`, `MATCH_THRE
 
 from calibrators import io, metrics
 from calibrators.apply import apply_profile, check_profile_fits
-from calibrators.conformal import ConformalRegions
 from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, layer_spread
 from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
 from calibrators.detections import Detections
 from calibrators.dump import Dump
-from calibrators.ellipse import Ellipse, ellipse
 from calibrators.evaluate import EvaluationReport, evaluate
 from calibrators.exceptions import FieldError, NotFittedError
 from calibrators.fit import fit_profile
@@ -48,6 +46,7 @@ from calibrators.matched import match_dump, raw_covariances, resolve_cov_source,
 from calibrators.matching import MatchResult, match
 from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibratedDetections, CalibrationProfile
+from calibrators.regions import ConformalRegions, Ellipse, ellipse
 from calibrators.score_calibration import (
     ClassTemperatureScaler,
     HistogramBinning,

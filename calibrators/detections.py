@@ -300,7 +300,7 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
     "method": "conformal" | "gaussian", "group": "car 15-30 m" | None}}` for each level `q`
     (the group is None for gaussian regions), or None when the profile's cov_dims lack x or y.
 
-    The angle is the major axis's from +x (`calibrators.ellipse`). The semi-axes of an
+    The angle is the major axis's from +x (`calibrators.regions`). The semi-axes of an
     unbounded region (a level beyond what its conformal group certifies: infinite radius) are
     None. Raises a FieldError naming the level and the detection (`row`) of any other
     semi-axis that is not finite.

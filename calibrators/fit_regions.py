@@ -18,11 +18,11 @@ from typing import Any
 import numpy as np
 
 from calibrators import metrics
-from calibrators.conformal import ConformalRegions
 from calibrators.covariance import DepthScaler, ShrinkageDepthScaler
 from calibrators.dump import Dump
 from calibrators.matched import raw_covariances, tp_residuals
 from calibrators.matching import MatchResult
+from calibrators.regions import ConformalRegions
 from calibrators.vocab import COV_METHODS
 
 __all__ = ["CovarianceFit", "RegionFit", "covariance_fit", "fit_covariance_stage",

@@ -34,10 +34,10 @@ from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
 from calibrators.fit_regions import xy_mahalanobis
-from calibrators.levels import DEFAULT_DISTANCE_EDGES, check_levels, distance_bins
 from calibrators.matched import match_dump, tp_residuals
 from calibrators.metrics._common import bin_index
 from calibrators.profile import CalibratedDetections, CalibrationProfile
+from calibrators.regions import DEFAULT_DISTANCE_EDGES, check_levels, distance_bins
 from calibrators.serving import group_name
 from calibrators.summary import SUMMARY_LEVELS
 

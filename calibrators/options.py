@@ -14,7 +14,7 @@ from typing import Any
 
 from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.exceptions import FieldError
-from calibrators.levels import check_distance_edges
+from calibrators.regions import check_distance_edges
 from calibrators.vocab import (
     COV_METHODS,
     COV_SOURCE_CHOICES,

@@ -9,9 +9,9 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.conformal import ConformalRegions
 from calibrators.exceptions import FieldError
 from calibrators.json_safe import to_jsonable
+from calibrators.regions import ConformalRegions
 from calibrators.score_calibration import score_calibrator_from_dict
 from calibrators.vocab import COV_METHODS, COV_SOURCES, REGION_METHODS, SCORE_METHODS
 

@@ -40,11 +40,17 @@ from calibrators.checks import (
 )
 from calibrators.covariance import add_depth_term, source_covariance
 from calibrators.defaults import ELLIPSE_CONFIDENCE
-from calibrators.ellipse import Ellipse, ellipse, radius_ellipses
 from calibrators.exceptions import FieldError
 from calibrators.hypotheses import check_hypotheses
-from calibrators.levels import MAX_LEVELS, check_levels, gaussian_radius
 from calibrators.modulation import modulate_logits
+from calibrators.regions import (
+    MAX_LEVELS,
+    Ellipse,
+    check_levels,
+    ellipse,
+    gaussian_radius,
+    radius_ellipses,
+)
 from calibrators.scores import (
     class_probabilities,
     label_logit,
@@ -54,10 +60,10 @@ from calibrators.scores import (
 )
 
 if TYPE_CHECKING:
-    from calibrators.conformal import ConformalGroup, ConformalRegions
     from calibrators.detections import Detections
     from calibrators.profile import CalibrationProfile
     from calibrators.profile_fields import SourceStage
+    from calibrators.regions import ConformalGroup, ConformalRegions
 
 __all__ = ["CalibratedDetections", "calibrate_detections"]
 

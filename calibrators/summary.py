@@ -50,12 +50,12 @@ from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.dump import Dump
 from calibrators.fit_regions import xy_mahalanobis
 from calibrators.json_safe import to_jsonable
-from calibrators.levels import DEFAULT_DISTANCE_EDGES, gaussian_radius
 from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
 from calibrators.matching import MatchResult
 from calibrators.metrics import expected_mahalanobis
 from calibrators.modulation import modulate_logits
 from calibrators.profile import CalibrationProfile
+from calibrators.regions import DEFAULT_DISTANCE_EDGES, gaussian_radius
 from calibrators.serving import CalibratedDetections
 from calibrators.summary_types import ProfileReport, Summary
 from calibrators.vocab import check_dims

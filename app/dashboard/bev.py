@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.ellipse import Ellipse
+from calibrators.regions import Ellipse
 from detectors.panels import pyplot
 from detectors.panels.bev import BevStyle, bev_panel
 

@@ -203,7 +203,7 @@ def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) 
     from app.errors import RequestError
     from app.schemas.calibrate import FrameIn
     from calibrators.covariance import layer_spread
-    from calibrators.ellipse import ellipse
+    from calibrators.regions import ellipse
 
     reason = detectors.available()
     if reason is not None:

@@ -17,7 +17,7 @@ from pydantic import (
 
 from app.schemas.common import Finite, Probability, ProfileRef, ProfileRefText
 from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
-from calibrators.levels import MAX_LEVELS
+from calibrators.regions import MAX_LEVELS
 from calibrators.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
 
 Row = list[Finite]
@@ -26,8 +26,8 @@ _BOX_WIDTHS = (len(BOX_FIELDS), BOX_INDEX["vx"])
 _BOX_TEXT = " ".join(BOX_FIELDS)
 
 #: The levels served when a request names none.
-#: Docs of the `levels` field; the rule itself is `calibrators.levels.check_levels`.
-#: The schema of `levels` as the library checks it (`calibrators.levels.check_levels`):
+#: Docs of the `levels` field; the rule itself is `calibrators.regions.check_levels`.
+#: The schema of `levels` as the library checks it (`calibrators.regions.check_levels`):
 #: published in OpenAPI, validated by the library alone.
 LEVELS_SCHEMA = {"minItems": 1, "maxItems": MAX_LEVELS, "uniqueItems": True,
                  "items": {"type": "number", "exclusiveMinimum": 0, "exclusiveMaximum": 1}}

@@ -17,14 +17,14 @@ import numpy as np
 from calibrators import checks
 from calibrators.checks import check_distances, class_codes
 from calibrators.exceptions import FieldError
-from calibrators.levels import (
+from calibrators.metrics._common import ResultMixin, as_binary, check_nonempty
+from calibrators.metrics.classification import expected_calibration_error
+from calibrators.regions import (
     DEFAULT_DISTANCE_EDGES,
     check_distance_edges,
     check_levels,
     distance_bins,
 )
-from calibrators.metrics._common import ResultMixin, as_binary, check_nonempty
-from calibrators.metrics.classification import expected_calibration_error
 
 
 @dataclass(frozen=True)

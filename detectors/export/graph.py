@@ -37,10 +37,9 @@ import torch
 from torch import Tensor, nn
 
 from calibrators.defaults import DEFAULT_LEVELS
-from calibrators.ellipse import chi2_2_quantile
-from calibrators.levels import check_levels
 from calibrators.profile import CalibrationProfile
 from calibrators.profile_fields import SourceStage, score_stage, source_stage
+from calibrators.regions import check_levels, chi2_2_quantile
 from calibrators.vocab import BOX_INDEX, detcal_version
 from detectors.export.regions import (
     ConformalRadii,

@@ -1,7 +1,7 @@
 """The covariance and region stages of an exported profile as torch modules (float64).
 
 Mirrors `calibrators.covariance.layer_spread`, `calibrators.hypotheses.hypotheses_covariance`,
-`calibrators.serving._scaled` and `_regions`, and `calibrators.ellipse`: `Σ` from the layer
+`calibrators.serving._scaled` and `_regions`, and `calibrators.regions`: `Σ` from the layer
 spread (`LayerSpread`) or the box hypotheses (`HypothesesSpread`), `Σ' = [s_c·]Σ + k_c·d·I`
 (`CovarianceScaling`), the eigen-decomposition of its x, y block (`EllipseAxes`) and the
 Mahalanobis radius of each level (`GaussianRadii`, `ConformalRadii`).
@@ -95,7 +95,7 @@ class CovarianceScaling(nn.Module):
 
 class EllipseAxes(nn.Module):
     """`(λ_max [N], λ_min [N], angle [N])` of the x, y block (rows/columns `ix`, `iy`) of
-    `cov [N, D, D]`, as `calibrators.ellipse._eigen`: the major axis from +x in
+    `cov [N, D, D]`, as `calibrators.regions._ellipse._eigen`: the major axis from +x in
     (−pi/2, pi/2]."""
 
     def __init__(self, ix: int, iy: int, terms: int = 12) -> None:
@@ -144,7 +144,7 @@ class EllipseAxes(nn.Module):
 
 class GaussianRadii(nn.Module):
     """The χ²₂ regions of levels `[Q]`: radii `[N, Q]` = `sqrt(χ²₂(q))` and semi-axes
-    `sqrt(χ²₂(q)·λ)` (`calibrators.ellipse.ellipse`)."""
+    `sqrt(χ²₂(q)·λ)` (`calibrators.regions.ellipse`)."""
 
     def __init__(self, chi2: Tensor) -> None:
         super().__init__()
@@ -160,7 +160,7 @@ class GaussianRadii(nn.Module):
 
 
 class ConformalRadii(nn.Module):
-    """Split-conformal radii (`calibrators.conformal.ConformalRegions.radii`): the group
+    """Split-conformal radii (`calibrators.regions.ConformalRegions.radii`): the group
     `serving [C, B]` of each label × distance bin (inner edges `[B − 1]`, a bin is the number
     of inner edges <= d), its radius `table [G, Q]`, semi-axes `r·sqrt(λ)`."""
 

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.ellipse import Ellipse
+from calibrators.regions import Ellipse
 
 
 @dataclass(frozen=True)

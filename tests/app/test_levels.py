@@ -22,10 +22,10 @@ from app.main import create_app
 from app.schemas.calibrate import CalibrateResponse
 from app.settings import Settings
 from app.store import Store
-from calibrators.ellipse import ellipse
 from calibrators.fit import fit_profile
 from calibrators.io import save_dump, save_nuscenes
 from calibrators.profile import CalibrationProfile
+from calibrators.regions import ellipse
 
 CAL, NUS, DET = "/v1/calibrate", "/v1/calibrate/nuscenes", "/v1/detect"
 JSON = {"content-type": "application/json"}

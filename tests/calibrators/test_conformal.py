@@ -9,8 +9,9 @@ import math
 import numpy as np
 import pytest
 
-from calibrators.conformal import ConformalRegions, _stored_ranks
 from calibrators.exceptions import NotFittedError
+from calibrators.regions import ConformalRegions
+from calibrators.regions._conformal import _stored_ranks
 
 LEVELS = np.array([0.5, 0.9, 0.95, 0.99])
 EDGES = (0.0, 15.0, 30.0, math.inf)

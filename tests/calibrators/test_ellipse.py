@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from calibrators.ellipse import Ellipse, chi2_2_quantile, ellipse
+from calibrators.regions import Ellipse, chi2_2_quantile, ellipse
 
 
 def rotation(theta: float) -> np.ndarray:
@@ -100,7 +100,7 @@ def test_bad_input(cov, conf, match):
 
 
 def test_an_infinite_radius_is_the_whole_plane_and_nan_or_negative_is_refused():
-    from calibrators.ellipse import radius_ellipse
+    from calibrators.regions import radius_ellipse
 
     cov = np.array([[[4.0, 0.0], [0.0, 1.0]], [[1.0, 0.0], [0.0, 0.0]]])
     el = radius_ellipse(cov, np.array([np.inf, 2.0]))

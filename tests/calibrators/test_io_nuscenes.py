@@ -356,7 +356,7 @@ def test_calibrate_results_document_refuses_bad_input(doc, scores, kwargs, messa
 
 def _served(method="conformal", groups=("car 0-15 m", "car 15-30 m", "pooled classes 30+ m")):
     """A stand-in for `CalibratedDetections` of 3 detections at levels 0.5 and 0.9."""
-    from calibrators.ellipse import Ellipse
+    from calibrators.regions import Ellipse
     from calibrators.serving import CalibratedDetections
 
     regions = {} if method is None else {

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from calibrators.levels import (
+from calibrators.regions import (
     MAX_LEVELS,
     check_distance_edges,
     check_levels,

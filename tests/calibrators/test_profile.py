@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from calibrators.covariance import layer_spread
-from calibrators.ellipse import ellipse
 from calibrators.profile import CalibratedDetections, CalibrationProfile, make_provenance
+from calibrators.regions import ellipse
 from calibrators.scores import class_probabilities
 
 CLASSES = ("car", "pedestrian", "barrier")

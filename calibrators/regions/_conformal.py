@@ -5,7 +5,7 @@ has a score `m = sqrt(rᵀ Σ'⁻¹ r)`. For a group of `n` exchangeable scores,
 level `q` is the `⌈(n+1)·q⌉`-th smallest score (inf when that rank exceeds n), and a new
 point of the group falls within it with probability >= q (and < q + 1/(n+1) without ties).
 
-Groups: a partition of the class × distance-bin cells (`calibrators.levels`), so that every
+Groups: a partition of the class × distance-bin cells (`_levels`), so that every
 calibration score belongs to exactly the group that serves its cell (what the guarantee
 needs: a group's radius is calibrated on the very cells it serves). Within a class, a bin
 with fewer than `min_group` scores is merged with its smaller adjacent neighbour (repeatedly)
@@ -32,13 +32,13 @@ import numpy as np
 from calibrators.checks import as_float_array, check_distances, check_length, class_codes
 from calibrators.exceptions import FieldError, check_fitted
 from calibrators.json_safe import to_jsonable
-from calibrators.levels import (
+from calibrators.metrics._common import check_n_bins, check_nonempty
+from calibrators.regions._levels import (
     DEFAULT_DISTANCE_EDGES,
     check_distance_edges,
     check_levels,
     distance_bins,
 )
-from calibrators.metrics._common import check_n_bins, check_nonempty
 
 REASONS = ("own", "merged_bins", "pooled_classes", "global")
 _TAIL_STEP, _BULK_STEP = 0.03, 0.004  # rank spacing: of the tail mass above, of n

@@ -13,8 +13,8 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import stats
 
-from calibrators.ellipse import chi2_2_quantile
 from calibrators.exceptions import FieldError
+from calibrators.regions._ellipse import chi2_2_quantile
 
 #: The most levels one request, fit or metric may name.
 MAX_LEVELS = 20
@@ -51,7 +51,7 @@ def check_levels(levels: object, name: str = "levels") -> np.ndarray:
 def gaussian_radius(level: float, dim: int = 2) -> float:
     """Mahalanobis radius `sqrt(χ²_dim(q))` of the Gaussian region holding a fraction `level`.
 
-    `dim = 2` uses the closed form of `calibrators.ellipse.chi2_2_quantile`.
+    `dim = 2` uses the closed form of `_ellipse.chi2_2_quantile`.
     """
     q = float(check_levels(level, "level")[0])
     if isinstance(dim, bool) or not isinstance(dim, int | np.integer) or dim < 1:
