@@ -30,7 +30,7 @@ import numpy as np
 from scipy.special import expit, softmax
 
 from calibrators.covariance import DepthScaler
-from calibrators.temperature import TemperatureScaler
+from calibrators.scores import TemperatureScaler
 
 N_CLASSES = 10
 T_TRUE = 1.5

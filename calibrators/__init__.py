@@ -53,9 +53,9 @@ from calibrators.score_calibration import (
     IsotonicCalibrator,
     PlattScaler,
 )
+from calibrators.scores import TemperatureScaler
 from calibrators.summary import format_table, summarize
 from calibrators.summary_types import ProfileReport, Summary
-from calibrators.temperature import TemperatureScaler
 
 __all__ = [
     "CalibratedDetections",

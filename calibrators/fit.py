@@ -15,7 +15,7 @@
    TP labels (`matched.ts_labels`: sigmoid 0/1 of the predicted class; softmax target column
    = matched class or no-object) and the per-class calibrators, the best by held-out NLL;
    with `modulation=True` the final-layer logits are first modulated from all decoder layers
-   (Eq. 4-1, `calibrators.modulation`). Matching and labels stay those of the raw detector;
+   (Eq. 4-1, `calibrators.scores`). Matching and labels stay those of the raw detector;
 6. covariance stage (`calibrators.fit_regions`): residuals (matched ground truth − final box)
    of the TPs over `dims` (yaw wrapped), the raw covariance from `cov_source` (`given`
    det_cov, `layers` spread across decoder layers, `hypotheses` group-score-weighted spread

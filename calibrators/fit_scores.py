@@ -20,8 +20,7 @@ from calibrators import metrics
 from calibrators.dump import Dump
 from calibrators.matched import ts_labels, ts_logits
 from calibrators.score_calibration import make_score_calibrator
-from calibrators.scores import label_logit
-from calibrators.temperature import TemperatureScaler
+from calibrators.scores import TemperatureScaler, label_logit
 from calibrators.vocab import SCORE_METHODS
 
 __all__ = ["ScoreFit", "fit_score_stage"]

@@ -47,6 +47,16 @@ from calibrators.io.parquet import ParquetDataset, open_parquet
 from calibrators.matched import canonical_order, held_out_frames, resolve_cov_source
 from calibrators.options import FitOptions, OptionError
 from calibrators.profile import CalibrationProfile, make_provenance
+from calibrators.scores import (
+    SIGMOID_BINS,
+    SUBSAMPLE_MIN,
+    SigmoidBins,
+    TemperatureScaler,
+    sigmoid_nll,
+    softmax_mean,
+    subsample_rows,
+    subsample_start,
+)
 from calibrators.stream_chunks import (
     Chunk,
     FirstPass,
@@ -58,14 +68,6 @@ from calibrators.stream_chunks import (
 )
 from calibrators.summary import summarize
 from calibrators.summary_types import ProfileReport
-from calibrators.temperature import (
-    SIGMOID_BINS,
-    SUBSAMPLE_MIN,
-    TemperatureScaler,
-    subsample_rows,
-    subsample_start,
-)
-from calibrators.temperature_nll import SigmoidBins, sigmoid_nll, softmax_mean
 from calibrators.vocab import COV_SOURCES
 
 #: Detections of whole frames the report summarises at most (per part: fit, held out).

@@ -23,8 +23,8 @@ from calibrators.defaults import MATCH_THRESHOLD
 from calibrators.detections import source_arrays
 from calibrators.dump import Dump
 from calibrators.matching import MatchResult, match
-from calibrators.modulation import modulate_logits
 from calibrators.options import OptionError
+from calibrators.scores import modulate_logits
 from calibrators.vocab import BOX_INDEX, COV_SOURCE_CHOICES, check_dims, wrap_angle
 
 __all__ = ["canonical_order", "check_dims", "held_out_frames", "match_dump", "raw_covariances",

@@ -2,7 +2,7 @@
 
 A profile is what `fit_profile` produces and what the service stores and applies. Version 1
 (the thesis): calibrated scores `sigmoid/softmax(z / T)` (with `modulation`, `z` is first
-modulated from the per-layer logits, `calibrators.modulation`), covariances `Σ + k_c · d · I`
+modulated from the per-layer logits, `calibrators.scores`), covariances `Σ + k_c · d · I`
 (class `c`, BEV distance `d` from the ego) and Gaussian confidence ellipses of their `x, y`
 block. Version 2 adds three stages, each `None` for the version-1 behaviour:
 `score_calibration` (a per-class score calibrator of the label's logit), `covariance_scaling`

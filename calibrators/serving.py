@@ -42,7 +42,6 @@ from calibrators.covariance import add_depth_term, source_covariance
 from calibrators.defaults import ELLIPSE_CONFIDENCE
 from calibrators.exceptions import FieldError
 from calibrators.hypotheses import check_hypotheses
-from calibrators.modulation import modulate_logits
 from calibrators.regions import (
     MAX_LEVELS,
     Ellipse,
@@ -55,6 +54,7 @@ from calibrators.scores import (
     class_probabilities,
     label_logit,
     label_scores,
+    modulate_logits,
     predict,
     probability_logit,
 )

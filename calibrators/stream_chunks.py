@@ -27,7 +27,7 @@ from calibrators.matched import (
     ts_logits,
 )
 from calibrators.matching import MatchResult
-from calibrators.temperature_nll import SigmoidBins, SoftmaxSums, row_max
+from calibrators.scores import SigmoidBins, SoftmaxSums, row_max
 
 
 @dataclass(frozen=True)

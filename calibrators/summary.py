@@ -53,9 +53,9 @@ from calibrators.json_safe import to_jsonable
 from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
 from calibrators.matching import MatchResult
 from calibrators.metrics import expected_mahalanobis
-from calibrators.modulation import modulate_logits
 from calibrators.profile import CalibrationProfile
 from calibrators.regions import DEFAULT_DISTANCE_EDGES, gaussian_radius
+from calibrators.scores import modulate_logits
 from calibrators.serving import CalibratedDetections
 from calibrators.summary_types import ProfileReport, Summary
 from calibrators.vocab import check_dims

@@ -1,6 +1,6 @@
 """Per-class temperature: `p = sigmoid(z / T_c)` on the labelled class's logit.
 
-Each `T_c` is fit exactly as the global temperature (`calibrators.temperature.
+Each `T_c` is fit exactly as the global temperature (`calibrators.scores.
 TemperatureScaler` in sigmoid mode: bounded Brent on `log T`, float64, binary NLL of "is a
 true positive") on the detections labelled `c`; a class with too few of them takes the pooled
 `T` (the same fit on every detection, i.e. the global sigmoid temperature). `T_c > 0`, so the
@@ -14,7 +14,7 @@ from scipy.special import expit
 
 from calibrators.checks import check_bounds
 from calibrators.score_calibration._base import ClasswiseCalibrator
-from calibrators.temperature import TemperatureScaler
+from calibrators.scores import TemperatureScaler
 
 
 class ClassTemperatureScaler(ClasswiseCalibrator):

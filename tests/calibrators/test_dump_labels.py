@@ -13,9 +13,9 @@ from calibrators.dump import Dump, concat_frames
 from calibrators.evaluate import evaluate
 from calibrators.io import load_dump, load_parquet, open_parquet, save_dump, save_parquet
 from calibrators.matched import match_dump
+from calibrators.scores import TemperatureScaler
 from calibrators.serving import calibrate_detections
 from calibrators.synthetic import synthetic_dump
-from calibrators.temperature import TemperatureScaler
 
 CLASSES = ("bus", "trailer")
 

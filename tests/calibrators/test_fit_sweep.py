@@ -11,13 +11,8 @@ from scipy.special import expit, softmax
 
 from calibrators.covariance import DepthScaler
 from calibrators.covariance._depth_nll import DepthTerms
-from calibrators.temperature import (
-    SIGMOID_BINS,
-    SUBSAMPLE_MIN,
-    TemperatureScaler,
-    _sigmoid_nll,
-    _softmax_nll,
-)
+from calibrators.scores import SIGMOID_BINS, SUBSAMPLE_MIN, TemperatureScaler
+from calibrators.scores._temperature import _sigmoid_nll, _softmax_nll
 
 CASES = [(t, 3.0) for t in (0.3, 0.7, 1.5, 2.7, 5.0)] + [
     (t, s) for t in (0.3, 1.5, 5.0) for s in (0.3, 30.0)]

@@ -9,9 +9,8 @@ import pytest
 
 from calibrators import summarize
 from calibrators.fit import fit_profile
-from calibrators.modulation import modulate_logits
 from calibrators.profile import CalibrationProfile
-from calibrators.scores import class_probabilities
+from calibrators.scores import class_probabilities, modulate_logits
 from calibrators.synthetic import synthetic_dump
 
 CLASSES = ("car", "pedestrian")

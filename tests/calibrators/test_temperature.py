@@ -7,13 +7,10 @@ import pytest
 from scipy.optimize import minimize_scalar
 from scipy.special import expit, log_expit, logsumexp, softmax
 
-from calibrators import temperature
+import calibrators.scores._temperature as temperature
 from calibrators.exceptions import NotFittedError
-from calibrators.scores import class_probabilities
-from calibrators.temperature import (
-    SIGMOID_BINS,
-    SUBSAMPLE_MIN,
-    TemperatureScaler,
+from calibrators.scores import SIGMOID_BINS, SUBSAMPLE_MIN, TemperatureScaler, class_probabilities
+from calibrators.scores._temperature import (
     _binned_sigmoid_nll,
     _sigmoid_nll,
     _sigmoid_nll_1d,

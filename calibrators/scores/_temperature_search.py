@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from scipy.optimize import minimize_scalar
 
-from calibrators.temperature_nll import Objective
+from calibrators.scores._temperature_nll import Objective
 
 
 def search_log_t(objective: Objective, bracket: tuple[float, float],

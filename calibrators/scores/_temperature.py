@@ -48,8 +48,8 @@ from calibrators.checks import (
     check_length,
 )
 from calibrators.exceptions import check_fitted
-from calibrators.scores import class_probabilities
-from calibrators.temperature_nll import (
+from calibrators.scores._probabilities import class_probabilities
+from calibrators.scores._temperature_nll import (
     SIGMOID_BINS,
     Objective,
     SigmoidBins,
@@ -59,7 +59,7 @@ from calibrators.temperature_nll import (
     softmax_nll,
     softmax_value_grad,
 )
-from calibrators.temperature_search import search_log_t
+from calibrators.scores._temperature_search import search_log_t
 from calibrators.vocab import SCORE_MODES
 
 SUBSAMPLE_MIN = 200_000  # softmax: from this many rows on, a subsample brackets T first
@@ -367,7 +367,7 @@ _softmax_nll = softmax_nll
 
 def _sigmoid_nll(z: np.ndarray, y: np.ndarray) -> Objective:
     """Exact mean binary NLL of the predicted class of `z [N, C]`, labels `y [N]` 0/1, as a
-    function of `log T` (see `calibrators.temperature_nll.sigmoid_nll`)."""
+    function of `log T` (see `_temperature_nll.sigmoid_nll`)."""
     return sigmoid_nll(row_max(z), y)
 
 

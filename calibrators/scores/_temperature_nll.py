@@ -1,6 +1,6 @@
 """The classification NLL of temperature scaling as a function of `log T`: exact (sigmoid and
 softmax), and the sigmoid NLL from binned sufficient statistics (`SigmoidBins`); used by
-`calibrators.temperature` (in memory) and `calibrators.stream` (per chunk, then merged).
+`_temperature` (in memory) and `calibrators.stream` (per chunk, then merged).
 
 An objective is a function `log T -> mean NLL`; a `ValueGrad` gives `(mean NLL, d mean NLL /
 d log T)` (softmax: `SoftmaxSums`, sigmoid bins: `SigmoidBins.value_grad`). Float64
