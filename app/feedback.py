@@ -3,7 +3,7 @@
 `frames_dump` turns the frames of a JSON feedback request (raw detections in the calibrate
 request's form, with `logits` or `layer_logits`, plus every ground-truth box) into a `Dump`
 the library matches and calibrates; `record_feedback` feeds the dump to
-`calibrators.health.collect_evidence` and the version's `DriftMonitor`, and appends the new
+`calibrators.monitoring.collect_evidence` and the version's `DriftMonitor`, and appends the new
 cumulative sums to the store (with its audit entry, in one transaction).
 """
 
@@ -20,10 +20,15 @@ from app.errors import RequestError
 from app.schemas.feedback import FeedbackFrame
 from app.store import AuditEntry, HealthChunk, HealthRecord, Store
 from calibrators.detections import box9, label_index
-from calibrators.drift import AlarmRule, DriftMonitor
 from calibrators.dump import Dump
 from calibrators.exceptions import FieldError
-from calibrators.health import FrameEvidence, HealthCounts, collect_evidence
+from calibrators.monitoring import (
+    AlarmRule,
+    DriftMonitor,
+    FrameEvidence,
+    HealthCounts,
+    collect_evidence,
+)
 from calibrators.scores import predict
 
 #: The alarm rule the service applies.

@@ -11,10 +11,10 @@ import numpy as np
 from app.cache import LoadedProfile
 from app.feedback import RULE, row_status
 from app.store import HealthRecord, Store
-from calibrators.drift import DriftMonitor
-from calibrators.health import (
+from calibrators.monitoring import (
     HEALTH_LEVELS,
     N_SCORE_BINS,
+    DriftMonitor,
     HealthCounts,
     health_figures,
     profile_edges,

@@ -16,7 +16,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 from app.health_document import window_counts
 from app.store import HealthOverview, Store
 from app.store.records import JOB_STATES
-from calibrators.health import HealthCounts
+from calibrators.monitoring import HealthCounts
 
 #: Set (to a directory) when several worker processes share their counters.
 MULTIPROC_ENV = "PROMETHEUS_MULTIPROC_DIR"

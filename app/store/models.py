@@ -146,7 +146,7 @@ class AuditRow(Base):
 
 class HealthRow(Base):
     """A chunk of feedback frames for one profile version, with the version's cumulative sums
-    (`calibrators.health.HealthCounts`) and drift-test state (`DriftMonitor`) after it, so a
+    (`calibrators.monitoring.HealthCounts`) and drift-test state (`DriftMonitor`) after it, so a
     window or "since activation" is the difference of two rows."""
 
     __tablename__ = "feedback_health"

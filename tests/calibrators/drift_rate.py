@@ -22,8 +22,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibrators import FitOptions, fit_profile
-from calibrators.drift import AlarmRule, DriftMonitor
-from calibrators.health import collect_evidence
+from calibrators.monitoring import AlarmRule, DriftMonitor, collect_evidence
 from calibrators.synthetic import DEFAULT_DEPTH_K, synthetic_dump
 
 

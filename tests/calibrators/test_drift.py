@@ -1,12 +1,11 @@
-"""calibrators.drift: no alarm on in-distribution feedback, a quick one under a shift."""
+"""calibrators.monitoring: no alarm on in-distribution feedback, a quick one under a shift."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from calibrators.drift import AlarmRule, DriftMonitor
-from calibrators.health import collect_evidence
+from calibrators.monitoring import AlarmRule, DriftMonitor, collect_evidence
 from tests.calibrators.drift_rate import one_run
 
 

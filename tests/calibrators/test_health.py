@@ -1,4 +1,4 @@
-"""calibrators.health: feedback evidence equals the offline summary on the same frames."""
+"""calibrators.monitoring: feedback evidence equals the offline summary on the same frames."""
 
 from __future__ import annotations
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from calibrators import FitOptions, fit_profile, summarize
-from calibrators.health import HealthCounts, collect_evidence, health_figures
 from calibrators.matched import select_detections
+from calibrators.monitoring import HealthCounts, collect_evidence, health_figures
 from calibrators.synthetic import synthetic_dump
 
 

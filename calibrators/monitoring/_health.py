@@ -17,7 +17,7 @@ profile (through the covariance stage `feedback_source` picks: the primary one, 
 cumulative sums and gets a window or "since activation" as a difference. `health_figures`
 turns a sum into the figures with their confidence bounds (Clopper-Pearson for coverage; for
 ECE, the per-bin gaps shrunk / widened by their accuracy interval). The drift test lives in
-`calibrators.drift`.
+`_drift`.
 """
 
 from __future__ import annotations

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from scipy.special import logsumexp
 
-from calibrators.health import FrameEvidence
+from calibrators.monitoring._health import FrameEvidence
 
 __all__ = ["AlarmRule", "DriftMonitor"]
 
