@@ -47,8 +47,11 @@ def test_the_exported_graph_serves_every_detection_the_same_in_any_order(graph, 
     dump = awkward(dump_given, case)
     moved, perm = shuffled(dump, case["seed"])
     a, b = _run(session, dump), _run(session, moved)
+    # onnxruntime's vectorised kernels take a row's lanes by its position in the batch, so a
+    # moved row may round differently in its last bit (one ulp seen): each detection's values
+    # must agree to 1e-12 relative, far below anything served, not bit for bit.
     for name in a:
-        np.testing.assert_array_equal(b[name], a[name][perm], err_msg=name)
+        np.testing.assert_allclose(b[name], a[name][perm], rtol=1e-12, atol=0, err_msg=name)
     ref = apply_profile(moved, profile)
     np.testing.assert_allclose(b["scores"], ref.scores, rtol=1e-9)
     np.testing.assert_allclose(b["covariances"], ref.covariances, rtol=1e-9, atol=1e-12)
