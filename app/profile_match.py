@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from app.cache import LoadedProfile, ProfileCache
 from app.errors import RequestError
 from app.store import NotFoundError
+from detectors.vocab import SENSORS
 
 
 def profile_for_sensor(cache: ProfileCache, ref: str | None, sensor: str, default: str
@@ -31,15 +32,10 @@ def profile_for_sensor(cache: ProfileCache, ref: str | None, sensor: str, defaul
                 f"(name={sensor}) or name a profile in `profile`"]
     loaded = cache.resolve(ref, default)
     name = loaded.record.name
-    if name != sensor and name in _SENSOR_NAMES:
+    if name != sensor and name in SENSORS:
         return loaded, [f"profile {loaded.record.ref} is named after another sensor than "
                         f"{sensor!r}: its scores and ellipses hold for {name} detections"]
     return loaded, []
-
-
-#: The bundled detectors' sensors (`detectors.vocab.SENSORS`, named here so that the service
-#: does not import the detectors package to answer a request).
-_SENSOR_NAMES = ("lidar", "radar1", "radar5", "camera")
 
 
 def check_classes(loaded: LoadedProfile, classes: Sequence[str] | None) -> None:
