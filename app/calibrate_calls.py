@@ -27,8 +27,8 @@ from app.profile_match import check_classes
 from app.schemas.calibrate import CalibrateRequest
 from app.schemas.nuscenes import NuScenesResults
 from app.store import NotFoundError
-from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
-from calibrators.exceptions import FieldError
+from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
+from calibrators.core.errors import FieldError
 from calibrators.io.arrow_batch import (
     ARROW_STREAM,
     LIBRARY_TO_COLUMN,

@@ -1,7 +1,7 @@
 """Validated request detections (JSON frames, a nuScenes results document) through the
 library's calibrate batch, and the library's errors at the request's field paths.
 
-The request's detections become JSON records (`calibrators.detections`), one
+The request's detections become JSON records (`calibrators.profile._detections`), one
 `Detections` batch per evidence form; each batch is calibrated and written back with
 `to_records()` / `to_nuscenes()`, every output detection placed by its own identity (its
 input row), never by position. Every check against the profile lives in the library: a
@@ -19,12 +19,16 @@ from app.cache import LoadedProfile
 from app.errors import RequestError
 from app.schemas.calibrate import FrameIn
 from app.schemas.nuscenes import NuScenesResults
-from calibrators.defaults import DEFAULT_LEVELS
-from calibrators.detections import WIRE_NAMES, Detections, detections_from_records
-from calibrators.exceptions import FieldError
+from calibrators.core.defaults import DEFAULT_LEVELS
+from calibrators.core.errors import FieldError
 from calibrators.io.nuscenes_batch import calibrated_document, detections_from_nuscenes
+from calibrators.profile import (
+    WIRE_NAMES,
+    CalibratedDetections,
+    Detections,
+    detections_from_records,
+)
 from calibrators.regions import check_levels
-from calibrators.serving import CalibratedDetections
 
 Locate = Callable[[int, int], list[str | int]]
 #: A results document's box keys for the library's fields where they differ from the wire's.

@@ -15,8 +15,8 @@ from pathlib import Path
 from typing import Any
 
 from app.cli import CliError
-from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
-from calibrators.options import FitOptions
+from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
+from calibrators.fit import FitOptions
 
 #: Ellipse levels `detcal calibrate` writes when --levels is not given (as the service's).
 
@@ -151,13 +151,13 @@ def stages_text(report: dict[str, Any]) -> str:
 def _fit_dataset(args: argparse.Namespace, options: FitOptions,
                  progress: Callable[[str, float], None] | None) -> Any:
     """The streamed fit of a Parquet dataset folder, here or on Dask (`--dask`)."""
-    from calibrators.fit_stream import fit_profile_stream
+    from calibrators.fit import fit_profile_stream
 
     if args.nuscenes_gt:
         raise CliError("--nuscenes-gt does not apply to a Parquet dataset folder")
     if not args.dask:
         return fit_profile_stream(args.dump, options, progress=progress)
-    from calibrators.distributed import dask_client
+    from calibrators.fit import dask_client
 
     try:
         with dask_client(args.dask) as client:
@@ -217,7 +217,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
 
 def _levels(values: list[str]) -> list[float]:
     """`--levels` as floats, checked by the library (at most 20, distinct, in (0, 1))."""
-    from calibrators.exceptions import FieldError
+    from calibrators.core.errors import FieldError
     from calibrators.regions import check_levels
 
     try:
@@ -231,7 +231,7 @@ def _served(calibrate: Callable[..., Any], **arrays: Any) -> Any:
     """`calibrate(**arrays)` (`apply_profile` or `CalibrationProfile.calibrate`); a level the
     profile cannot serve (a conformal group with too few calibration points) is a CliError
     naming --levels."""
-    from calibrators.exceptions import FieldError
+    from calibrators.core.errors import FieldError
 
     try:
         return calibrate(**arrays)
@@ -245,9 +245,9 @@ def _dump_batches(path: Path, profile: Any) -> list[Any]:
     """The detections of an NPZ dump or a Parquet dataset folder, each with its identity
     (frame token, dump row)."""
     from calibrators import check_profile_fits
-    from calibrators.detections import Detections
     from calibrators.io.npz import load_dump
     from calibrators.io.parquet import load_parquet
+    from calibrators.profile import Detections
 
     try:   # the library's messages name no file: here do
         dump = load_parquet(str(path)) if path.is_dir() else load_dump(str(path))

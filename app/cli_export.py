@@ -15,8 +15,8 @@ from typing import Any
 
 from app.cli import CliError
 from app.cli_calib import load_profile
-from calibrators.defaults import DEFAULT_LEVELS
-from calibrators.vocab import COV_SOURCES
+from calibrators.core.defaults import DEFAULT_LEVELS
+from calibrators.core.vocab import COV_SOURCES
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

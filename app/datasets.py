@@ -6,7 +6,7 @@ anything inside it, its parts and sub-folders included), and without the setting
 refused. No message shows a server path: the folder is named by its relative name. A fit job
 stores the name as a small JSON upload of kind `parquet-dataset`, so the job, its provenance and
 the clean-up treat it like any stored dump; the job resolves the name again when it runs
-(`calibrators.fit_stream.fit_profile_stream`).
+(`calibrators.fit._stream.fit_profile_stream`).
 """
 
 from __future__ import annotations

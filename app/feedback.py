@@ -19,9 +19,8 @@ from app.cache import LoadedProfile
 from app.errors import RequestError
 from app.schemas.feedback import FeedbackFrame
 from app.store import AuditEntry, HealthChunk, HealthRecord, Store
-from calibrators.detections import box9, label_index
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.monitoring import (
     AlarmRule,
     DriftMonitor,
@@ -29,6 +28,7 @@ from calibrators.monitoring import (
     HealthCounts,
     collect_evidence,
 )
+from calibrators.profile import box9, label_index
 from calibrators.scores import predict
 
 #: The alarm rule the service applies.

@@ -30,8 +30,7 @@ from typing import Any
 from app.datasets import DATASET_KIND, redact_paths, referenced_dataset
 from app.store import JobLostError, JobRecord, Store
 from app.store.files import InstanceLock
-from calibrators.fit import fit_profile
-from calibrators.options import FitOptions
+from calibrators.fit import FitOptions, fit_profile
 
 log = logging.getLogger("detcal.jobs")
 
@@ -208,7 +207,7 @@ class JobRunner:
         """The profile of `job`: its stored dump fit in memory, or its Parquet dataset (a
         stored `app.datasets` reference) fit part by part."""
         if self.store.dump_kind(job.dump_sha256) == DATASET_KIND:
-            from calibrators.fit_stream import fit_profile_stream
+            from calibrators.fit import fit_profile_stream
 
             path = referenced_dataset(self.datasets_dir, self.store.dump_path(job.dump_sha256))
             progress("fitting", 0.0)

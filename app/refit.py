@@ -19,10 +19,10 @@ import numpy as np
 
 from app.cache import LoadedProfile
 from app.store import AuditEntry, NotFoundError, Store
-from calibrators.dump import Dump, concat_frames
-from calibrators.fit import check_fit_input
+from calibrators.core.errors import OptionError
+from calibrators.data import Dump, concat_frames
+from calibrators.fit import FitOptions, check_fit_input
 from calibrators.io import load_dump, save_dump
-from calibrators.options import FitOptions, OptionError
 
 log = logging.getLogger("detcal.refit")
 

@@ -22,9 +22,8 @@ import time
 import numpy as np
 from scipy.special import logit
 
-from calibrators.dump import Dump
-from calibrators.evaluate import TP_METRICS, evaluate
-from calibrators.matching import DEFAULT_CLASS_RANGE
+from calibrators.data import Dump
+from calibrators.evaluation import DEFAULT_CLASS_RANGE, TP_METRICS, evaluate
 
 CLASSES = ("car", "truck", "bus", "trailer", "construction_vehicle", "pedestrian",
            "motorcycle", "bicycle", "traffic_cone", "barrier")

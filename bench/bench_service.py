@@ -74,8 +74,8 @@ def serve_detcal(data_dir: Path, profile_json: str, port: int, *serve_args: str,
 
 def service_payload(n: int = 300) -> tuple[dict, str]:
     """A 300-detection frame from a synthetic dump, and the profile JSON fit on that dump."""
+    from calibrators.data import synthetic_dump
     from calibrators.fit import fit_profile
-    from calibrators.synthetic import synthetic_dump
 
     dump = synthetic_dump(n_frames=40, seed=3)
     profile = fit_profile(dump, cov_source="given")

@@ -1,7 +1,7 @@
 """Benchmark: a streamed fit of a 20M-detection Parquet dataset in bounded memory, and the
 same fit on a 2-worker Dask LocalCluster.
 
-A synthetic dataset with known T and per-class k (`calibrators.synthetic.synthetic_dump`,
+A synthetic dataset with known T and per-class k (`calibrators.data._synthetic.synthetic_dump`,
 chunk by chunk, written with `ParquetWriter` as float32, one decoder layer, given 2x2
 covariances) is fit by `fit_profile_stream` in a child process run under `/usr/bin/time -v`
 (its peak RSS is the figure), then on `distributed.LocalCluster(n_workers=2)` (worker
@@ -25,9 +25,8 @@ import sys
 import time
 from pathlib import Path
 
-from calibrators.dump import concat_frames
+from calibrators.data import CLASSES10, DEFAULT_DEPTH_K, concat_frames, synthetic_dump
 from calibrators.io import ParquetWriter
-from calibrators.synthetic import CLASSES10, DEFAULT_DEPTH_K, synthetic_dump
 
 T_TRUE = 2.0
 #: A quarter of the synthetic defaults: even at 60 m a true positive stays well inside the
@@ -61,13 +60,13 @@ def generate(path: Path, n_detections: int, rows_per_part: int) -> tuple[int, fl
 
 def child_fit(path: str, out: str, dask: str | None) -> None:
     """Fit (here or on Dask) and write the profile JSON and the fit's wall time."""
-    from calibrators.fit_stream import fit_profile_stream
+    from calibrators.fit import fit_profile_stream
 
     start = time.perf_counter()
     if dask is None:
         profile = fit_profile_stream(path, **OPTIONS)
     else:
-        from calibrators.distributed import dask_client
+        from calibrators.fit import dask_client
 
         with dask_client(dask) as client:
             start = time.perf_counter()

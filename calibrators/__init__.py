@@ -22,14 +22,30 @@ exported here; the defaults (`ELLIPSE_CONFIDENCE`, `DEFAULT_LEVELS`, `MATCH_THRE
 """
 
 from calibrators import io, metrics
-from calibrators.apply import apply_profile, check_profile_fits
-from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, layer_spread
-from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
-from calibrators.detections import Detections
-from calibrators.dump import Dump
-from calibrators.evaluate import EvaluationReport, evaluate
-from calibrators.exceptions import FieldError, NotFittedError
-from calibrators.fit import fit_profile
+from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
+from calibrators.core.errors import FieldError, NotFittedError, OptionError
+from calibrators.core.json_safe import to_jsonable
+from calibrators.covariance import (
+    DepthScaler,
+    ShrinkageDepthScaler,
+    layer_spread,
+    raw_covariances,
+    resolve_cov_source,
+)
+from calibrators.data import Dump
+from calibrators.evaluation import (
+    EvaluationReport,
+    MatchResult,
+    ProfileReport,
+    Summary,
+    evaluate,
+    format_table,
+    match,
+    match_dump,
+    summarize,
+    tp_residuals,
+)
+from calibrators.fit import FitOptions, fit_profile
 from calibrators.io import (
     ParquetDataset,
     ParquetWriter,
@@ -41,21 +57,21 @@ from calibrators.io import (
     save_nuscenes,
     save_parquet,
 )
-from calibrators.json_safe import to_jsonable
-from calibrators.matched import match_dump, raw_covariances, resolve_cov_source, tp_residuals
-from calibrators.matching import MatchResult, match
-from calibrators.options import FitOptions, OptionError
-from calibrators.profile import CalibratedDetections, CalibrationProfile
+from calibrators.profile import (
+    CalibratedDetections,
+    CalibrationProfile,
+    Detections,
+    apply_profile,
+    check_profile_fits,
+)
 from calibrators.regions import ConformalRegions, Ellipse, ellipse
-from calibrators.score_calibration import (
+from calibrators.scores import (
     ClassTemperatureScaler,
     HistogramBinning,
     IsotonicCalibrator,
     PlattScaler,
+    TemperatureScaler,
 )
-from calibrators.scores import TemperatureScaler
-from calibrators.summary import format_table, summarize
-from calibrators.summary_types import ProfileReport, Summary
 
 __all__ = [
     "CalibratedDetections",

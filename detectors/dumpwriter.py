@@ -75,12 +75,12 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
                max_detections: int | None = None, gt_filter: str = "lidar_radar",
                attention_top_k: int = 6, decode: str = DECODINGS[0],
                progress: Callable[[int, int], None] | None = None):  # -> calibrators.Dump
-    """Run `model` over the simulated scenes `seeds` and return a `calibrators.dump.Dump`.
+    """Run `model` over the simulated scenes `seeds` and return a `calibrators.data._dump.Dump`.
 
     `max_detections` detections are kept per frame, by final-layer score (default: as many
     as the model has queries), decoded as `decode` says.
     """
-    from calibrators.dump import Dump
+    from calibrators.data import Dump
     from detectors.sim import make_frame
 
     if gt_filter not in GT_FILTERS:

@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from calibrators.checks import check_choice
-from calibrators.defaults import ELLIPSE_CONFIDENCE
+from calibrators.core.checks import check_choice
+from calibrators.core.defaults import ELLIPSE_CONFIDENCE
 from detectors.infer import detect
 from detectors.model.detector import Detector
 from detectors.panels import pyplot

@@ -5,7 +5,7 @@ Plain tuples with no imports, so that the `detcal` CLI can offer them as choices
 loading torch or the simulator. The simulator (`detectors.sim`), the registry, the dump
 writer, `detcal show` and the report import these names instead of spelling them again.
 The calibration library's words (box fields, the *profile's* covariance sources, score
-modes, angle wrapping) live in `calibrators.vocab`.
+modes, angle wrapping) live in `calibrators.core.vocab`.
 """
 
 from __future__ import annotations
@@ -17,7 +17,7 @@ SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
 #: Where a bundled detector's own (x, y) box covariance comes from: the sample covariance of
 #: a query's box across decoder layers (`layers`, thesis) or the final layer's attention
 #: spread plus the variance of a uniform position in one token cell (`attention`, seed 000).
-#: Not `calibrators.vocab.COV_SOURCES`, which says where a *profile* takes its Σ from.
+#: Not `calibrators.core.vocab.COV_SOURCES`, which says where a *profile* takes its Σ from.
 DETECTOR_COV_SOURCES: tuple[str, ...] = ("layers", "attention")
 #: What a dump's `det_cov` holds (`detcal dump --cov-source`): a detector source, or nothing.
 DUMP_COV_SOURCES: tuple[str, ...] = (*DETECTOR_COV_SOURCES, "none")

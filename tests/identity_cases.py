@@ -10,7 +10,7 @@ from typing import Any
 import numpy as np
 from hypothesis import strategies as st
 
-from calibrators.dump import Dump
+from calibrators.data import Dump
 
 #: What a property test draws: a seed for the permutation and which awkward cases to add.
 CASES = st.fixed_dictionaries({"seed": st.integers(0, 2**31 - 1),

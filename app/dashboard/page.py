@@ -18,8 +18,8 @@ from app.cache import LoadedProfile
 from app.dashboard.intervals import MIN_TPS, RULE, proportion_interval, too_small
 from app.store import JobRecord, NameSummary
 from calibrators import ProfileReport, Summary
-from calibrators.defaults import ELLIPSE_CONFIDENCE
-from calibrators.summary_types import Pair
+from calibrators.core.defaults import ELLIPSE_CONFIDENCE
+from calibrators.evaluation import Pair
 
 _CSS = """
 body{font-family:system-ui,-apple-system,Segoe UI,sans-serif;margin:0;background:#f6f7f9;color:#222}

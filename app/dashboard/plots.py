@@ -1,7 +1,7 @@
 """Matplotlib figures (Agg backend) rendered to inline SVG strings for the dashboard.
 
 Inputs are the plot data of a profile's summary (`report["fit"]["plots"]`, see
-calibrators.summary) and, for the bird's-eye view, one frame's detections. The panels are
+`calibrators.evaluation`) and, for the bird's-eye view, one frame's detections. The panels are
 `detectors.panels`' (shared with the report and `detcal show`); matplotlib is imported
 when a figure is drawn, never when this module is.
 """

@@ -22,7 +22,7 @@ from app.schemas.calibrate import (
 from app.schemas.calibrate_query import CalibrateQuery
 from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.nuscenes import NuScenesResults
-from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
+from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.io.arrow_batch import ARROW_STREAM
 
 router = APIRouter(prefix="/v1", tags=["calibrate"],

@@ -23,7 +23,7 @@ from app.schemas.feedback import FeedbackRequest, FeedbackResult
 from app.settings import Settings
 from app.store import AuditEntry, Store
 from app.uploads import check_declared, declared_npz, load_upload
-from calibrators.dump import Dump
+from calibrators.data import Dump
 
 router = APIRouter(prefix="/v1", tags=["feedback"])
 log = logging.getLogger("detcal.feedback")

@@ -18,8 +18,8 @@ from app.schemas.fit import FitForm
 from app.schemas.profiles import FitAccepted
 from app.store import AuditEntry, DumpRecord, Store
 from app.uploads import check_declared, declared_npz, load_upload
-from calibrators.fit import check_fit_input
-from calibrators.options import FitOptions, OptionError
+from calibrators.core.errors import OptionError
+from calibrators.fit import FitOptions, check_fit_input
 
 router = APIRouter(prefix="/v1", tags=["fit"])
 
@@ -125,7 +125,7 @@ def _dataset(store: Store, root: Path | None, name: str, options: FitOptions,
     checks): a 422 at `dataset` for a name outside `root` (links included) or a bad dataset,
     a 413 for a part too large, a 422 at the option for one a streamed fit cannot
     reproduce."""
-    from calibrators.fit_stream import check_stream_options
+    from calibrators.fit import check_stream_options
 
     ds = open_dataset(root, name, max_part_detections)
     empty = load_upload(ds.empty_dump, "dataset")

@@ -16,9 +16,9 @@ from pydantic import (
 )
 
 from app.schemas.common import Finite, Probability, ProfileRef, ProfileRefText
-from calibrators.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
+from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
+from calibrators.core.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
 from calibrators.regions import MAX_LEVELS
-from calibrators.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
 
 Row = list[Finite]
 #: A box row has every field, or every field up to the velocity.
@@ -61,7 +61,7 @@ def _covariance(v: list[list[float]]) -> list[list[float]]:
 
 
 #: A `[D, D]` covariance, checked square here; symmetry and positive semi-definiteness are
-#: checked by the library against the profile (`calibrators.checks.check_covariances`).
+#: checked by the library against the profile (`calibrators.core.checks.check_covariances`).
 Covariance = Annotated[list[Row], AfterValidator(_covariance), WithJsonSchema({
     "description": "A square [D, D] matrix, D in 1..9.",
     "anyOf": [{"type": "array", "minItems": d, "maxItems": d, "items": {

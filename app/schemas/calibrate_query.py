@@ -7,7 +7,7 @@ from pydantic import BaseModel, Field
 
 from app.schemas.calibrate import LEVELS_SCHEMA, LEVELS_TEXT
 from app.schemas.common import ProfileRefText
-from calibrators.defaults import ELLIPSE_CONFIDENCE
+from calibrators.core.defaults import ELLIPSE_CONFIDENCE
 
 _FOR_ARROW = "For Arrow bodies; a JSON body's own field of the same name takes precedence."
 

@@ -21,7 +21,7 @@ from pydantic import (
     ValidationError,
 )
 
-from calibrators.json_safe import to_jsonable
+from calibrators.core.json_safe import to_jsonable
 
 Finite = Annotated[float, Strict(), Field(allow_inf_nan=False)]
 Probability = Annotated[float, Strict(), Field(ge=0.0, le=1.0, allow_inf_nan=False)]

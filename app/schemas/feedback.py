@@ -8,7 +8,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from app.schemas.calibrate import FrameIn, Row
 from app.schemas.common import ProfileRef, ProfileRefText
-from calibrators.vocab import BOX_FIELDS, BOX_INDEX
+from calibrators.core.vocab import BOX_FIELDS, BOX_INDEX
 
 _BOX_WIDTHS = (len(BOX_FIELDS), BOX_INDEX["vx"])
 HealthStatus = Literal["ok", "degraded", "insufficient"]

@@ -10,7 +10,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, create_model
 
-from calibrators.options import FitOptions
+from calibrators.fit import FitOptions
 
 
 def _field(spec: Any) -> tuple[Any, Any]:

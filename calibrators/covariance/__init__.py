@@ -1,5 +1,6 @@
 """Covariance: where a detection's box covariance comes from, and how it is scaled.
 
+- hypotheses (`_hypotheses`): the checks of H box hypotheses and their score-weighted spread.
 - sources (`_sources`): the one dispatch from a covariance source name (`given`, `layers`,
   `hypotheses`, `none`) to the arrays it reads (`SOURCE_ARRAYS`) and the uncalibrated Σ it
   gives (`source_covariance`); `layer_spread`, the spread across decoder layers.
@@ -11,13 +12,19 @@
 
 from calibrators.covariance._depth import DepthScaler, add_depth_term, fit_inputs
 from calibrators.covariance._depth_nll import BinSums
+from calibrators.covariance._hypotheses import check_hypotheses, hypotheses_covariance
 from calibrators.covariance._shrinkage import ShrinkageDepthScaler
 from calibrators.covariance._sources import (
     SOURCE_ARRAYS,
     dim_indices,
     layer_spread,
+    raw_covariances,
+    resolve_cov_source,
+    source_arrays,
     source_covariance,
 )
 
 __all__ = ["SOURCE_ARRAYS", "BinSums", "DepthScaler", "ShrinkageDepthScaler", "add_depth_term",
-           "dim_indices", "fit_inputs", "layer_spread", "source_covariance"]
+           "check_hypotheses", "dim_indices", "fit_inputs", "hypotheses_covariance",
+           "layer_spread", "raw_covariances", "resolve_cov_source", "source_arrays",
+           "source_covariance"]

@@ -24,17 +24,18 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.checks import (
+from calibrators.core.checks import (
     as_float_array,
     check_bounds,
     check_covariances,
     check_distances,
+    check_fitted,
     check_min_samples,
     class_codes,
 )
+from calibrators.core.errors import FieldError
 from calibrators.covariance._depth_nll import DepthBins, DepthTerms, depth_bins
 from calibrators.covariance._depth_search import fit_k
-from calibrators.exceptions import FieldError, check_fitted
 
 
 class DepthScaler:

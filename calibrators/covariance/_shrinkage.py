@@ -24,12 +24,18 @@ from typing import Any
 import numpy as np
 from scipy.optimize import minimize_scalar
 
-from calibrators.checks import as_float_array, as_int_array, check_bounds, check_min_samples
+from calibrators.core.checks import (
+    as_float_array,
+    as_int_array,
+    check_bounds,
+    check_fitted,
+    check_min_samples,
+)
+from calibrators.core.errors import FieldError
+from calibrators.core.json_safe import to_jsonable
 from calibrators.covariance._depth import add_depth_term, fit_inputs, per_row, transform_inputs
 from calibrators.covariance._depth_nll import DepthBins, DepthTerms, depth_bins
 from calibrators.covariance._depth_search import fit_k
-from calibrators.exceptions import FieldError, check_fitted
-from calibrators.json_safe import to_jsonable
 
 
 class ShrinkageDepthScaler:

@@ -11,19 +11,29 @@ pi, which holds for any sensible decoder).
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calibrators.checks import as_float_array
-from calibrators.exceptions import FieldError
-from calibrators.hypotheses import hypotheses_covariance
-from calibrators.vocab import BOX_FIELDS, BOX_INDEX, check_dims, wrap_angle
+from calibrators.core.checks import as_float_array
+from calibrators.core.errors import FieldError, OptionError
+from calibrators.core.vocab import (
+    BOX_FIELDS,
+    BOX_INDEX,
+    COV_SOURCE_CHOICES,
+    check_dims,
+    wrap_angle,
+)
+from calibrators.covariance._hypotheses import hypotheses_covariance
+
+if TYPE_CHECKING:
+    from calibrators.data import Dump
 
 
 def layer_spread(layer_boxes: np.ndarray, dims: Sequence[str] = ("x", "y")) -> np.ndarray:
     """Sample covariance (ddof=1) `[N, D, D]` of each query's box `[N, L, 9]` across layers.
 
-    `dims` names the `D` box fields (`calibrators.vocab.BOX_FIELDS`), in the covariance's
+    `dims` names the `D` box fields (`calibrators.core.vocab.BOX_FIELDS`), in the covariance's
     order.
     """
     idx = dim_indices(dims)
@@ -74,3 +84,51 @@ def source_covariance(source: str, dims: Sequence[str], *,
     if source == "hypotheses":
         return hypotheses_covariance(hyp_boxes, hyp_scores, dims)
     return None
+
+
+def resolve_cov_source(dump: Dump, cov_source: str, dims: tuple[str, ...]) -> str:
+    """The covariance source to use: `given`, `layers`, `hypotheses` or `none`.
+
+    `auto` is `given` when the dump carries `det_cov` over exactly `dims`, else `layers` when
+    it has at least two decoder layers, else `none`. `auto` never picks `hypotheses`: it is
+    asked for by name (a dump fit with `auto` keeps the source it had before the hypothesis
+    arrays existed, and `other_sources` fits a `hypotheses` stage beside it anyway). An
+    explicit source the dump cannot provide raises an `OptionError` naming `cov_source`.
+    """
+    if cov_source not in COV_SOURCE_CHOICES:
+        raise OptionError("cov_source", f"cov_source must be one of {list(COV_SOURCE_CHOICES)}, "
+                                        f"got {cov_source!r}")
+    if cov_source == "auto":
+        if dump.det_cov is not None and dump.cov_dims == dims:
+            return "given"
+        return "layers" if dump.n_layers >= 2 else "none"
+    if cov_source == "given":
+        if dump.det_cov is None:
+            raise OptionError("cov_source", "cov_source='given' but the dump has no det_cov")
+        if dump.cov_dims != dims:
+            raise OptionError("cov_source", f"cov_source='given' needs the dump's cov_dims "
+                                            f"{list(dump.cov_dims)} to equal dims {list(dims)}")
+    if cov_source == "layers" and dump.n_layers < 2:
+        raise OptionError("cov_source", f"cov_source='layers' needs at least 2 decoder "
+                                        f"layers, the dump has {dump.n_layers}")
+    if cov_source == "hypotheses" and dump.n_hypotheses == 0:
+        raise OptionError("cov_source", "cov_source='hypotheses' needs the dump's box "
+                                        "hypotheses (det_hyp_boxes [N, H, 9] and "
+                                        "det_hyp_scores [N, H], from group regression "
+                                        "heads); the dump has none")
+    return cov_source
+
+
+
+def raw_covariances(dump: Dump, source: str, dims: tuple[str, ...]) -> np.ndarray | None:
+    """`[N, D, D]` uncalibrated covariance of every detection from `source`, or None (`none`):
+    `source_covariance` of the dump's `source_arrays`, as a served call computes it."""
+    return source_covariance(source, dims, **source_arrays(dump, source))
+
+
+def source_arrays(dump: Dump, source: str) -> dict[str, np.ndarray | None]:
+    """The keyword arguments of `CalibrationProfile.calibrate` that carry covariance `source`
+    from `dump`: `covariances [N, D, D]` (given), `layer_boxes [N, L, 9]` (layers),
+    `hyp_boxes [N, H, 9]` and `hyp_scores [N, H]` (hypotheses), nothing (none); the table
+    is `calibrators.covariance.SOURCE_ARRAYS`."""
+    return {name: getattr(dump, attr) for name, attr in SOURCE_ARRAYS.get(source, {}).items()}

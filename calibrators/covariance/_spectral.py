@@ -11,7 +11,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from calibrators.checks import covariance_tolerance
+from calibrators.core.checks import covariance_tolerance
 
 _BLOCK = 1 << 15  # rows per block of `spectral_2x2`: its temporaries stay in the CPU cache
 _TINY = float(np.finfo(np.float64).tiny)

@@ -12,7 +12,6 @@
 - `file_sha256`: content hash for provenance; `atomic_write`: a file replaced in one rename.
 """
 
-from calibrators.detections import ellipses_json, unbounded_none
 from calibrators.io.atomic import atomic_write
 from calibrators.io.formats import FORMATS, load_dump
 from calibrators.io.hashing import file_sha256
@@ -22,6 +21,7 @@ from calibrators.io.nuscenes_batch import calibrated_document, detections_from_n
 from calibrators.io.nuscenes_write import calibrate_results_document, save_nuscenes
 from calibrators.io.parquet import ParquetDataset, load_parquet, open_parquet
 from calibrators.io.parquet_write import ParquetWriter, save_parquet
+from calibrators.profile import ellipses_json, unbounded_none
 
 __all__ = ["FORMATS", "ParquetDataset", "ParquetWriter", "atomic_write",
            "calibrate_results_document", "calibrated_document", "detections_from_nuscenes",

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.io.reader_files import ByteBudget, check_file
 from calibrators.io.reader_rows import Rows, check_scores, class_list, rows_to_dump
 

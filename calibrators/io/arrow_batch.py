@@ -36,10 +36,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from calibrators.detections import WIRE_NAMES, Detections, box9
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.io.arrow_safe import MAX_INFLATED_BYTES, read_safe_stream
-from calibrators.serving import CalibratedDetections
+from calibrators.profile import WIRE_NAMES, CalibratedDetections, Detections, box9
 
 ARROW_STREAM = "application/vnd.apache.arrow.stream"
 EVIDENCE_COLUMNS = ("logits", "layer_logits", "score")

@@ -23,7 +23,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.io.arrow_headers import batch_header, inflated_bytes
 
 #: Bytes an Arrow body may take once decoded (all batches, compressed buffers inflated).

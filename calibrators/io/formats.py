@@ -23,8 +23,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, BinaryIO
 
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 
 FORMATS = ("npz", "parquet", "nuscenes", "kitti", "openpcdet", "mmdet3d", "av2")
 

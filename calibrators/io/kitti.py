@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrators.defaults import MATCH_THRESHOLD
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.defaults import MATCH_THRESHOLD
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.io.kitti_calib import CAMERA_AXES, camera_boxes, parse_calib
 from calibrators.io.kitti_ignore import (
     DIFFICULTY,

@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 
 #: Matrix names of a calib file and their sizes; aliases of the tracking devkit.
 CALIB_SIZES = {"P0": 12, "P1": 12, "P2": 12, "P3": 12, "R0_rect": 9, "Tr_velo_to_cam": 12,

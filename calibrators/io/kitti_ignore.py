@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibrators.matching import match
+from calibrators.evaluation import match
 
 #: KITTI class -> its neighbouring class, whose ground truth is ignored for it.
 NEIGHBOURS = {"Car": "Van", "Pedestrian": "Person_sitting"}

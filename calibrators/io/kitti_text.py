@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 
 #: Number fields after `type`, in order (`bbox` and the vectors spread over their columns).
 NUMBER_FIELDS = ("truncated", "occluded", "alpha", "bbox", "bbox", "bbox", "bbox",

@@ -31,8 +31,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.io.reader_files import ByteBudget, check_file
 from calibrators.io.reader_rows import Rows, check_scores, class_list, rows_to_dump
 from calibrators.scores import probability_logit

@@ -6,7 +6,7 @@ and the zip's declared sizes, against `max_bytes` (the total inflated size), the
 may have (never object, complex or structured) and the shapes the other keys imply (N, L, G,
 F, C, D, H). Every missing, unknown, unreadable or inconsistent key is refused with a
 `FieldError` naming the key; values (NaN/Inf, indices) are then checked by
-`calibrators.dump.Dump`, whose messages name the key too. Messages never show the file's path.
+`calibrators.data._dump.Dump`, whose messages name the key too. Messages never show the file's path.
 """
 
 from __future__ import annotations
@@ -18,8 +18,8 @@ from typing import BinaryIO
 
 import numpy as np
 
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.io.atomic import atomic_write
 
 REQUIRED_KEYS = ("classes", "score_mode", "frame_ids", "det_frame", "det_logits", "det_boxes",

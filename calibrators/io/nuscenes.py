@@ -21,13 +21,10 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.special import logit
 
-from calibrators.checks import (
-    as_float_array,
-    check_probabilities,
-)
-from calibrators.dump import Dump
+from calibrators.core.checks import as_float_array, check_probabilities
+from calibrators.core.vocab import SCORE_MODES, quaternion_yaw
+from calibrators.data import Dump
 from calibrators.scores import probability_logit
-from calibrators.vocab import SCORE_MODES, quaternion_yaw
 
 if TYPE_CHECKING:
     pass

@@ -23,12 +23,12 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calibrators.detections import Detections, calibrated_records, detections_from_records
-from calibrators.exceptions import FieldError
-from calibrators.vocab import quaternion_yaw
+from calibrators.core.errors import FieldError
+from calibrators.core.vocab import quaternion_yaw
+from calibrators.profile import Detections, calibrated_records, detections_from_records
 
 if TYPE_CHECKING:
-    from calibrators.serving import CalibratedDetections
+    from calibrators.profile import CalibratedDetections
 
 __all__ = ["DEVKIT_META", "calibrated_document", "detections_from_nuscenes", "devkit_box"]
 

@@ -15,16 +15,11 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calibrators.checks import (
-    as_float_array,
-    check_choice,
-    check_length,
-    check_probabilities,
-)
-from calibrators.dump import Dump
+from calibrators.core.checks import as_float_array, check_choice, check_length, check_probabilities
+from calibrators.core.vocab import BOX_FIELDS
+from calibrators.data import Dump
 from calibrators.io.atomic import atomic_write
 from calibrators.io.nuscenes_batch import DEVKIT_META, devkit_box
-from calibrators.vocab import BOX_FIELDS
 
 if TYPE_CHECKING:
     pass

@@ -25,9 +25,9 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from calibrators.defaults import MATCH_THRESHOLD
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.defaults import MATCH_THRESHOLD
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.io.kitti_ignore import DONTCARE_OVERLAP, NEIGHBOURS, ignored_detections
 from calibrators.io.pickle_safe import load_restricted
 from calibrators.io.reader_files import ByteBudget, check_file

@@ -21,8 +21,8 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from calibrators.dump import Dump, concat_frames
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump, concat_frames
 
 FORMAT = "detcal-parquet"
 VERSION = 1

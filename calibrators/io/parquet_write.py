@@ -19,7 +19,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
-from calibrators.dump import Dump
+from calibrators.data import Dump
 from calibrators.io.atomic import atomic_write
 from calibrators.io.parquet import FORMAT, META_FILE, VERSION
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 import io
 import pickle
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 
 #: (module, name) a pickle may name: numpy's array, dtype and scalar reconstruction (both the
 #: numpy 1.x `numpy.core` and the numpy 2.x `numpy._core` paths), and set types. Protocol-2

@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 
 #: Default cap on the bytes one reader call reads from disk, all files together.
 MAX_READ_BYTES = 2 * 2**30

@@ -14,9 +14,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.checks import check_probabilities
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.checks import check_probabilities
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.scores import probability_logit
 
 #: Probability given to the classes a scores-only detection does not name (as nuScenes JSON).

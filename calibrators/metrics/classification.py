@@ -10,7 +10,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.metrics._common import (
+from calibrators.core.bins import (
     ResultMixin,
     calibration_bins,
     check_n_bins,

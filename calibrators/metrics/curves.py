@@ -23,8 +23,8 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from calibrators.checks import as_float_array, check_length
-from calibrators.metrics._common import ResultMixin, check_n_bins, check_nonempty
+from calibrators.core.bins import ResultMixin, check_n_bins, check_nonempty
+from calibrators.core.checks import as_float_array, check_length
 
 
 @dataclass(frozen=True)

@@ -12,8 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibrators.checks import as_float_array, check_length
-from calibrators.metrics._common import bin_index, check_n_bins, confidences_and_correct
+from calibrators.core.bins import bin_index, check_n_bins, confidences_and_correct
+from calibrators.core.checks import as_float_array, check_length
 
 
 def _bins_per_dim(n_bins: int | Sequence[int], k: int) -> tuple[int, ...]:

@@ -14,10 +14,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators import checks
-from calibrators.checks import check_distances, class_codes
-from calibrators.exceptions import FieldError
-from calibrators.metrics._common import ResultMixin, as_binary, check_nonempty
+from calibrators.core import checks
+from calibrators.core.bins import ResultMixin, as_binary, check_nonempty
+from calibrators.core.checks import check_distances, class_codes
+from calibrators.core.errors import FieldError
 from calibrators.metrics.classification import expected_calibration_error
 from calibrators.regions import (
     DEFAULT_DISTANCE_EDGES,

@@ -15,8 +15,8 @@ import numpy as np
 from scipy import stats
 from scipy.special import gammaln
 
-from calibrators.checks import as_float_array, check_covariances
-from calibrators.metrics._common import ResultMixin, check_nonempty
+from calibrators.core.bins import ResultMixin, check_nonempty
+from calibrators.core.checks import as_float_array, check_covariances
 
 
 def _residuals_and_covariances(residuals: object, covariances: object

@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibrators.checks import (
+from calibrators.core.bins import as_binary, check_nonempty
+from calibrators.core.checks import (
     as_float_array,
     as_int_array,
     check_index,
     check_length,
     check_probabilities,
 )
-from calibrators.metrics._common import as_binary, check_nonempty
 
 #: probabilities are clipped to [EPS, 1 - EPS] before the log so a confident miss costs
 #: -log(1e-12) ≈ 27.6 nats instead of infinity.

@@ -29,17 +29,14 @@ from typing import Any
 import numpy as np
 from scipy import stats
 
-from calibrators.apply import source_arrays
-from calibrators.defaults import MATCH_THRESHOLD
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
-from calibrators.fit_regions import xy_mahalanobis
-from calibrators.matched import match_dump, tp_residuals
-from calibrators.metrics._common import bin_index
-from calibrators.profile import CalibratedDetections, CalibrationProfile
-from calibrators.regions import DEFAULT_DISTANCE_EDGES, check_levels, distance_bins
-from calibrators.serving import group_name
-from calibrators.summary import SUMMARY_LEVELS
+from calibrators.core.bins import bin_index
+from calibrators.core.defaults import MATCH_THRESHOLD
+from calibrators.core.errors import FieldError
+from calibrators.covariance import source_arrays
+from calibrators.data import Dump
+from calibrators.evaluation import SUMMARY_LEVELS, match_dump, tp_residuals
+from calibrators.profile import CalibratedDetections, CalibrationProfile, group_name
+from calibrators.regions import DEFAULT_DISTANCE_EDGES, check_levels, distance_bins, xy_mahalanobis
 
 __all__ = ["HEALTH_LEVELS", "FrameEvidence", "HealthCounts", "RegionGroups", "collect_evidence",
            "feedback_source", "health_figures", "profile_edges", "region_groups"]

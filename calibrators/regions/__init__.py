@@ -15,6 +15,7 @@ from calibrators.regions._ellipse import (
     ellipse,
     radius_ellipse,
     radius_ellipses,
+    xy_mahalanobis,
 )
 from calibrators.regions._levels import (
     DEFAULT_DISTANCE_EDGES,
@@ -27,4 +28,5 @@ from calibrators.regions._levels import (
 
 __all__ = ["DEFAULT_DISTANCE_EDGES", "MAX_LEVELS", "ConformalGroup", "ConformalRegions",
            "Ellipse", "chi2_2_quantile", "check_distance_edges", "check_levels",
-           "distance_bins", "ellipse", "gaussian_radius", "radius_ellipse", "radius_ellipses"]
+           "distance_bins", "ellipse", "gaussian_radius", "radius_ellipse", "radius_ellipses",
+           "xy_mahalanobis"]

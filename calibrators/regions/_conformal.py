@@ -29,10 +29,16 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.checks import as_float_array, check_distances, check_length, class_codes
-from calibrators.exceptions import FieldError, check_fitted
-from calibrators.json_safe import to_jsonable
-from calibrators.metrics._common import check_n_bins, check_nonempty
+from calibrators.core.bins import check_n_bins, check_nonempty
+from calibrators.core.checks import (
+    as_float_array,
+    check_distances,
+    check_fitted,
+    check_length,
+    class_codes,
+)
+from calibrators.core.errors import FieldError
+from calibrators.core.json_safe import to_jsonable
 from calibrators.regions._levels import (
     DEFAULT_DISTANCE_EDGES,
     check_distance_edges,

@@ -13,8 +13,10 @@ from typing import NamedTuple
 
 import numpy as np
 
-from calibrators.checks import as_float_array, check_covariances
-from calibrators.defaults import ELLIPSE_CONFIDENCE
+from calibrators.core.checks import as_float_array, check_covariances
+from calibrators.core.defaults import ELLIPSE_CONFIDENCE
+
+_HUGE = 1e300   # the Mahalanobis distance under a singular Σ': outside every region
 
 
 class Ellipse(NamedTuple):
@@ -95,3 +97,17 @@ def _eigen(cov: np.ndarray, check: bool = True
     angle = 0.5 * np.arctan2(2.0 * b + 0.0, a - c)
     angle = np.where(angle <= -0.5 * np.pi, angle + np.pi, angle)  # same axis, in range
     return single, (np.maximum(mean + radius, 0.0), np.maximum(mean - radius, 0.0), angle)
+
+
+def xy_mahalanobis(residuals: np.ndarray, covariances: np.ndarray, dims: tuple[str, ...]
+                   ) -> np.ndarray:
+    """`[M]` Mahalanobis distance of the x, y residuals under the x, y block of `Σ' [M, D, D]`
+    (a singular block gives a huge distance: outside every region)."""
+    ix, iy = dims.index("x"), dims.index("y")
+    r = residuals[:, [ix, iy]]
+    a, b, c = covariances[:, ix, ix], covariances[:, ix, iy], covariances[:, iy, iy]
+    det = a * c - b * b
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = (c * r[:, 0] ** 2 - 2.0 * b * r[:, 0] * r[:, 1] + a * r[:, 1] ** 2) / det
+    q = np.where(det > 0, q, np.inf)
+    return np.minimum(np.sqrt(np.maximum(q, 0.0)), _HUGE)

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 from scipy import stats
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.regions._ellipse import chi2_2_quantile
 
 #: The most levels one request, fit or metric may name.

@@ -8,10 +8,19 @@
   `_temperature_nll`, searched on `log T` by `_temperature_search`): `p = softmax(z / T)` or
   `sigmoid(z / T)`, `TemperatureScaler`.
 
-The per-class score calibrators live in `calibrators.score_calibration`.
+- per-class calibrators of the labelled class's logit (`_calibrator` the shared base,
+  `_class_temperature`, `_platt`, `_isotonic`, `_histogram`, with the monotone knots of
+  `_knots`; built by name and loaded back by `_registry`): `fit(z, labels, tp, distances)`,
+  `transform` -> P(true positive), strictly increasing in `z` within a class.
 """
 
+from calibrators.scores._calibrator import ClasswiseCalibrator
+from calibrators.scores._class_temperature import ClassTemperatureScaler
+from calibrators.scores._histogram import HistogramBinning
+from calibrators.scores._isotonic import IsotonicCalibrator
+from calibrators.scores._knots import KnotCalibrator, isotonic_knots, monotone_knots
 from calibrators.scores._modulation import modulate_logits
+from calibrators.scores._platt import PlattScaler
 from calibrators.scores._probabilities import (
     class_probabilities,
     label_logit,
@@ -19,6 +28,11 @@ from calibrators.scores._probabilities import (
     predict,
     probabilities_logits,
     probability_logit,
+)
+from calibrators.scores._registry import (
+    SCORE_CALIBRATION_METHODS,
+    make_score_calibrator,
+    score_calibrator_from_dict,
 )
 from calibrators.scores._temperature import (
     SUBSAMPLE_MIN,
@@ -35,7 +49,10 @@ from calibrators.scores._temperature_nll import (
     softmax_mean,
 )
 
-__all__ = ["SIGMOID_BINS", "SUBSAMPLE_MIN", "SigmoidBins", "SoftmaxSums", "TemperatureScaler",
-           "class_probabilities", "label_logit", "label_scores", "modulate_logits", "predict",
-           "probabilities_logits", "probability_logit", "row_max", "sigmoid_nll",
+__all__ = ["SCORE_CALIBRATION_METHODS", "SIGMOID_BINS", "SUBSAMPLE_MIN", "ClassTemperatureScaler",
+           "ClasswiseCalibrator", "HistogramBinning", "IsotonicCalibrator", "KnotCalibrator",
+           "PlattScaler", "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities",
+           "isotonic_knots", "label_logit", "label_scores", "make_score_calibrator",
+           "modulate_logits", "monotone_knots", "predict", "probabilities_logits",
+           "probability_logit", "row_max", "score_calibrator_from_dict", "sigmoid_nll",
            "softmax_mean", "subsample_rows", "subsample_start"]

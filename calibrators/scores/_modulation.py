@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibrators.checks import as_float_array
+from calibrators.core.checks import as_float_array
 
 
 def modulate_logits(layer_logits: np.ndarray) -> np.ndarray:

@@ -14,8 +14,8 @@ from __future__ import annotations
 import numpy as np
 from scipy.special import expit, log_softmax
 
-from calibrators.checks import as_float_array, check_choice, check_positive
-from calibrators.vocab import SCORE_MODES
+from calibrators.core.checks import as_float_array, check_choice, check_positive
+from calibrators.core.vocab import SCORE_MODES
 
 _EPS = 1e-12   # probability_logit: how far from 0 and 1 probabilities are clipped
 

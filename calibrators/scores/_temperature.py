@@ -26,7 +26,7 @@ for T in [0.3, 5] and logit scales 0.3 to 30):
   steps from it; a bracket without a sign change moves to the root's side, four times as
   wide (never blindly to the bounds). About five passes in all.
 - validation reads nothing twice: float64 logits are not copied; their finiteness is
-  checked by the pass that reads them anyway, with the errors of `calibrators.checks`.
+  checked by the pass that reads them anyway, with the errors of `calibrators.core.checks`.
 """
 
 from __future__ import annotations
@@ -38,16 +38,17 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
-from calibrators.checks import (
+from calibrators.core.checks import (
     as_float_array,
     as_int_array,
     check_bounds,
     check_choice,
     check_finite,
+    check_fitted,
     check_index,
     check_length,
 )
-from calibrators.exceptions import check_fitted
+from calibrators.core.vocab import SCORE_MODES
 from calibrators.scores._probabilities import class_probabilities
 from calibrators.scores._temperature_nll import (
     SIGMOID_BINS,
@@ -60,7 +61,6 @@ from calibrators.scores._temperature_nll import (
     softmax_value_grad,
 )
 from calibrators.scores._temperature_search import search_log_t
-from calibrators.vocab import SCORE_MODES
 
 SUBSAMPLE_MIN = 200_000  # softmax: from this many rows on, a subsample brackets T first
 _SUBSAMPLE_ROWS = 50_000  # rows of that subsample (at least; N / 20 if larger)
@@ -217,7 +217,7 @@ def _validate(logits: np.ndarray, labels: np.ndarray, mode: str
     """C-contiguous float64 logits `[N, C']` and int64 labels `[N]`, checked for the score
     mode. Float64 logits are not copied, and their finiteness is left to the one pass that
     reads them anyway (sigmoid: the predicted logits' range; softmax: the search's first
-    pass); the errors are those of `calibrators.checks`."""
+    pass); the errors are those of `calibrators.core.checks`."""
     if isinstance(logits, np.ndarray) and logits.dtype == np.float64 and logits.ndim == 2:
         z = np.ascontiguousarray(logits)
         if mode == "sigmoid" and z.shape[1] > 1:

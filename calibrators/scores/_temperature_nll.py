@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.checks import check_finite
+from calibrators.core.checks import check_finite
 
 Objective = Callable[[float], float]
 ValueGrad = Callable[[float], tuple[float, float]]

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import shapely
 
-from calibrators.checks import as_float_array
+from calibrators.core.checks import as_float_array
 from detectors.sim.geometry import bev_corners
 
 

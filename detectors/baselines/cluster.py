@@ -31,10 +31,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.special import log_expit, log_softmax
 
-from calibrators.checks import as_float_array, as_int_array, check_choice, check_length
+from calibrators.core.checks import as_float_array, as_int_array, check_choice, check_length
+from calibrators.core.vocab import BOX_INDEX as DIM_INDEX
+from calibrators.core.vocab import SCORE_MODES, wrap_angle
 from calibrators.covariance import dim_indices
-from calibrators.vocab import BOX_INDEX as DIM_INDEX
-from calibrators.vocab import SCORE_MODES, wrap_angle
 from detectors.baselines.bev_iou import check_boxes
 
 _YAW = DIM_INDEX["yaw"]

@@ -24,7 +24,7 @@ from collections.abc import Sequence
 import numpy as np
 from sklearn.cluster import DBSCAN
 
-from calibrators.checks import check_choice
+from calibrators.core.checks import check_choice
 from detectors.baselines.bev_iou import pairwise_bev_iou
 from detectors.baselines.cluster import MergedDetections, check_inputs, summarise
 

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibrators.checks import as_int_array, check_length
+from calibrators.core.checks import as_int_array, check_length
 from detectors.baselines.bev_iou import paired_bev_iou
 from detectors.baselines.cluster import MergedDetections, check_inputs, summarise
 

@@ -12,7 +12,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from calibrators.dump import Dump
+from calibrators.data import Dump
 from detectors.baselines.cluster import MergedDetections
 
 

@@ -1,6 +1,6 @@
 """A calibration profile as one torch module: `build_graph(profile, ...) -> CalibrationGraph`.
 
-The graph does what `CalibrationProfile.calibrate` (`calibrators.serving`) does for one
+The graph does what `CalibrationProfile.calibrate` (`calibrators.profile._calibrate`) does for one
 covariance source and a fixed set of region levels, on tensors and in float64 whatever the
 input dtype. Inputs, in this order (N detections, L decoder layers, C' logit columns, D =
 len(cov_dims)):
@@ -36,11 +36,10 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from calibrators.defaults import DEFAULT_LEVELS
-from calibrators.profile import CalibrationProfile
-from calibrators.profile_fields import SourceStage, score_stage, source_stage
+from calibrators.core.defaults import DEFAULT_LEVELS
+from calibrators.core.vocab import BOX_INDEX, detcal_version
+from calibrators.profile import CalibrationProfile, SourceStage, score_stage, source_stage
 from calibrators.regions import check_levels, chi2_2_quantile
-from calibrators.vocab import BOX_INDEX, detcal_version
 from detectors.export.regions import (
     ConformalRadii,
     CovarianceScaling,

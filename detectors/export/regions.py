@@ -1,7 +1,7 @@
 """The covariance and region stages of an exported profile as torch modules (float64).
 
-Mirrors `calibrators.covariance.layer_spread`, `calibrators.hypotheses.hypotheses_covariance`,
-`calibrators.serving._scaled` and `_regions`, and `calibrators.regions`: `Σ` from the layer
+Mirrors `calibrators.covariance` (`layer_spread`, `hypotheses_covariance`), `calibrators.profile`
+(`_calibrate`: `_scaled`, `_regions`) and `calibrators.regions`: `Σ` from the layer
 spread (`LayerSpread`) or the box hypotheses (`HypothesesSpread`), `Σ' = [s_c·]Σ + k_c·d·I`
 (`CovarianceScaling`), the eigen-decomposition of its x, y block (`EllipseAxes`) and the
 Mahalanobis radius of each level (`GaussianRadii`, `ConformalRadii`).
@@ -41,7 +41,7 @@ class LayerSpread(_BoxColumns):
 
     def forward(self, layer_boxes: Tensor) -> Tensor:
         values = layer_boxes.index_select(2, self.index)                      # [N, L, D]
-        if self.any_yaw:   # calibrators.vocab.wrap_angle: pi − mod(pi − a, 2·pi)
+        if self.any_yaw:   # calibrators.core.vocab.wrap_angle: pi − mod(pi − a, 2·pi)
             turn = self.pi - (values - values[:, -1:])
             wrapped = self.pi - (turn - 2.0 * self.pi * torch.floor(turn / (2.0 * self.pi)))
             values = torch.where(self.yaw, wrapped, values)
@@ -62,7 +62,7 @@ class HypothesesSpread(_BoxColumns):
         equal = torch.ones_like(scores) / scores.shape[1]
         safe = torch.where(total > 0.0, total, torch.ones_like(total))
         weights = torch.where(total > 0.0, scores / safe, equal)
-        if self.any_yaw:   # around the top hypothesis, as calibrators.vocab.wrap_angle
+        if self.any_yaw:   # around the top hypothesis, as calibrators.core.vocab.wrap_angle
             top = scores.argmax(dim=1, keepdim=True).unsqueeze(2)             # [N, 1, 1]
             ref = values.gather(1, top.expand(-1, 1, values.shape[2]))         # [N, 1, D]
             turn = self.pi - (values - ref)

@@ -1,6 +1,6 @@
 """The score stage of an exported profile as torch modules (float64, TorchScript-able).
 
-Each mirrors `calibrators.serving` / `calibrators.scores` / `calibrators.score_calibration`
+Each mirrors `calibrators.profile._calibrate` / `calibrators.scores`
 on tensors: the label is the arg-max of the raw final-layer object logits; the score is
 `sigmoid/softmax(z / T)` (`TemperatureScores`, which also gives the class probabilities) or a
 per-class calibrator of the label's logit (`LabelLogitScores` around `ClassTemperature`,
@@ -99,7 +99,7 @@ class Platt(nn.Module):
 
 
 class Knots(nn.Module):
-    """Isotonic / histogram knots served as `calibrators.score_calibration._knots.serve`:
+    """Isotonic / histogram knots served as `calibrators.scores._knots.serve`:
     `(1 − δ)·clip(interp(z; x_c, y_c), eps, 1 − eps) + δ·sigmoid(z)`. `x, y [C, K]`: each
     class's table padded to K >= 2 knots past its last one (x increasing, y held), which
     leaves `interp` unchanged (flat beyond the ends)."""

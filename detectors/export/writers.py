@@ -22,7 +22,7 @@ from typing import Any
 
 import torch
 
-from calibrators.defaults import DEFAULT_LEVELS
+from calibrators.core.defaults import DEFAULT_LEVELS
 from calibrators.io import atomic_write
 from calibrators.profile import CalibrationProfile
 from detectors.export.graph import CalibrationGraph, ExportError, build_graph

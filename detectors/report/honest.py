@@ -93,7 +93,7 @@ def honest_section(val: Dump, test: Dump, m: MatchResult, forward_ms: float,
 def _class_rows(test: Dump, m: MatchResult, ts: CalibrationProfile, auto: CalibrationProfile
                 ) -> list[HonestClassRow]:
     from calibrators import apply_profile, tp_residuals
-    from calibrators.fit_regions import xy_mahalanobis
+    from calibrators.regions import xy_mahalanobis
 
     tp = np.asarray(m.tp, dtype=bool)
     s_ts = apply_profile(test, ts).scores

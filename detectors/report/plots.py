@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from calibrators import ellipse, metrics
-from calibrators.defaults import ELLIPSE_CONFIDENCE
+from calibrators.core.defaults import ELLIPSE_CONFIDENCE
 from detectors.panels import Curve, panel_grid, pyplot
 from detectors.panels.bev import BevStyle, bev_panel
 from detectors.panels.calibration_curve import calibration_curve_panel

@@ -6,7 +6,7 @@ import dataclasses
 
 import numpy as np
 
-from calibrators.vocab import wrap_angle
+from calibrators.core.vocab import wrap_angle
 from detectors.sim.classes import (
     CLASS_SPECS,
     CLASSES,

@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.vocab import wrap_angle
+from calibrators.core.vocab import wrap_angle
 from detectors.sim.geometry import bev_corners, bev_distance_to_box
 
 

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from calibrators.vocab import BOX_INDEX, check_dims
+from calibrators.core.vocab import BOX_INDEX, check_dims
 
 
 def layer_covariance(layer_boxes: Tensor, dims: Sequence[str] = ("x", "y")) -> Tensor:

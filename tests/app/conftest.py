@@ -11,8 +11,8 @@ from fastapi.testclient import TestClient
 from app.main import create_app
 from app.settings import Settings
 from app.store import Store
+from calibrators.data import synthetic_dump
 from calibrators.fit import fit_profile
-from calibrators.synthetic import synthetic_dump
 from tests.app import pg
 
 TOKEN = "test-admin-token-0123456789"

@@ -9,7 +9,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.io.arrow_batch import ARROW_STREAM, read_stream
 from calibrators.io.arrow_headers import batch_header, inflated_bytes
 from calibrators.io.arrow_safe import MAX_ID_BYTES, plain_stream

@@ -6,7 +6,7 @@ from __future__ import annotations
 from fastapi.testclient import TestClient
 
 from app.main import create_app
-from calibrators.synthetic import DEFAULT_DEPTH_K, synthetic_dump
+from calibrators.data import DEFAULT_DEPTH_K, synthetic_dump
 from tests.app.conftest import ADMIN
 from tests.app.feedback_frames import feedback_frames
 

@@ -16,10 +16,10 @@ from fastapi.testclient import TestClient
 from app.main import create_app
 from app.settings import Settings
 from app.store import Store
+from calibrators.data import synthetic_dump
 from calibrators.fit import fit_profile
 from calibrators.io.arrow_batch import ARROW_STREAM, write_stream
 from calibrators.profile import CalibrationProfile
-from calibrators.synthetic import synthetic_dump
 from tests.app.arrow_compare import assert_same_floats
 
 CAL = "/v1/calibrate"

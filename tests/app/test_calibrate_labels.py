@@ -11,8 +11,8 @@ import pyarrow as pa
 import pytest
 
 from calibrators import CalibrationProfile, Dump, summarize
+from calibrators.data import synthetic_dump
 from calibrators.io.arrow_batch import ARROW_STREAM, write_stream
-from calibrators.synthetic import synthetic_dump
 from tests.app.arrow_compare import assert_same_floats
 from tests.app.conftest import ADMIN
 from tests.app.feedback_frames import feedback_frames

@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 
 from app.cli import main
+from calibrators.data import synthetic_dump
 from calibrators.io import save_dump
 from calibrators.profile import CalibrationProfile
-from calibrators.synthetic import synthetic_dump
 
 DETCAL = Path(sys.executable).parent / "detcal"
 

@@ -10,7 +10,7 @@ import pytest
 
 from app.cli import main
 from app.settings import Settings
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 
 ort = pytest.importorskip("onnxruntime")
 torch = pytest.importorskip("torch")

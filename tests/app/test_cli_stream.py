@@ -8,9 +8,9 @@ from pathlib import Path
 
 import pytest
 
+from calibrators.data import synthetic_dump
 from calibrators.io import load_parquet, save_dump
 from calibrators.profile import CalibrationProfile
-from calibrators.synthetic import synthetic_dump
 
 DETCAL = Path(sys.executable).parent / "detcal"
 

@@ -3,7 +3,7 @@ time series after it."""
 
 from __future__ import annotations
 
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 from tests.app.conftest import ADMIN
 from tests.app.feedback_frames import feedback_frames
 

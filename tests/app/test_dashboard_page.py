@@ -6,7 +6,7 @@ import re
 
 from app.dashboard.page import COVERAGE_MIN_TPS, before_after_table, region_table
 from calibrators import ProfileReport, fit_profile
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 
 
 def test_region_table_shows_every_cell_and_marks_only_judgeable_misses():

@@ -63,7 +63,7 @@ def test_detect_sends_the_group_heads_hypotheses_and_labels(seeded):
 
     from app.store import Store
     from calibrators import fit_profile
-    from calibrators.synthetic import synthetic_dump
+    from calibrators.data import synthetic_dump
     from detectors.model import Detector
     from detectors.registry import detector_config
 

@@ -9,7 +9,7 @@ from pydantic import SecretStr
 from app.deps import token_id
 from app.main import create_app
 from calibrators import CalibrationProfile, summarize
-from calibrators.synthetic import DEFAULT_DEPTH_K, synthetic_dump
+from calibrators.data import DEFAULT_DEPTH_K, synthetic_dump
 from tests.app.conftest import ADMIN, TOKEN
 from tests.app.feedback_frames import feedback_frames, npz_bytes
 

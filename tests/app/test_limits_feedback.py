@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 
 from app.main import create_app
 from app.settings import Settings
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 from tests.app.conftest import ADMIN
 from tests.app.feedback_frames import feedback_frames, npz_bytes
 from tests.zeros_npz import zeros_npz

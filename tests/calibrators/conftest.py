@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 
 # Large enough that T (within 10 %) and the k of common classes are stable across seeds,
 # small enough that a fit takes well under a second.

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibrators import FitOptions, fit_profile
+from calibrators.data import DEFAULT_DEPTH_K, synthetic_dump
 from calibrators.monitoring import AlarmRule, DriftMonitor, collect_evidence
-from calibrators.synthetic import DEFAULT_DEPTH_K, synthetic_dump
 
 
 @dataclass(frozen=True)

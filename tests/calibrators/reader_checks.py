@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.io import load_dump, save_dump
 
 

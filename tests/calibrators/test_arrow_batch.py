@@ -7,7 +7,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.io.arrow_batch import (
     batch_request,
     calibrated_batch,
@@ -101,8 +101,8 @@ def test_streams_that_are_not_arrow_or_too_long_are_refused_before_reading_colum
 
 
 def test_a_calibrated_batch_keeps_row_order_and_marks_unbounded_axes_null():
+    from calibrators.data import synthetic_dump
     from calibrators.fit import fit_profile
-    from calibrators.synthetic import synthetic_dump
 
     dump = synthetic_dump(n_frames=20, seed=1)
     profile = fit_profile(dump, cov_source="given", region_method="conformal", min_group=30)

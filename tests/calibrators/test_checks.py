@@ -1,13 +1,13 @@
-"""calibrators.checks: the covariance test's rounding allowance scales with the matrix."""
+"""calibrators.core.checks: the covariance test's rounding allowance scales with the matrix."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from calibrators.checks import check_covariances, covariance_tolerance
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.checks import check_covariances, covariance_tolerance
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 
 
 def rank_one(v, dtype=np.float64) -> np.ndarray:

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from calibrators import FitOptions, fit_profile
-from calibrators.synthetic import synthetic_dump
-from calibrators.vocab import SCORE_METHODS
+from calibrators.core.vocab import SCORE_METHODS
+from calibrators.data import synthetic_dump
 
 
 @pytest.fixture(scope="module")

@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from calibrators.exceptions import NotFittedError
+from calibrators.core.errors import NotFittedError
 from calibrators.regions import ConformalRegions
 from calibrators.regions._conformal import _stored_ranks
 

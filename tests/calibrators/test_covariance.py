@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from calibrators.core.vocab import BOX_INDEX as DIM_INDEX
 from calibrators.covariance import layer_spread
-from calibrators.vocab import BOX_INDEX as DIM_INDEX
 
 
 def test_dim_index_is_the_box_layout():

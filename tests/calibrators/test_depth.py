@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrators.checks import class_codes
+from calibrators.core.checks import class_codes
+from calibrators.core.errors import NotFittedError
 from calibrators.covariance import DepthScaler, add_depth_term
 from calibrators.covariance._depth_nll import (
     MANTISSA_BITS,
@@ -16,7 +17,6 @@ from calibrators.covariance._depth_nll import (
 )
 from calibrators.covariance._depth_search import brent_k
 from calibrators.covariance._spectral import spectral, spectral_2x2
-from calibrators.exceptions import NotFittedError
 
 K_TRUE = {"car": 0.02, "pedestrian": 0.08, "barrier": 0.3}
 

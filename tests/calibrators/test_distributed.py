@@ -5,12 +5,10 @@ from __future__ import annotations
 
 import pytest
 
-from calibrators.distributed import Mapper, dask_client, parse_dask_spec
-from calibrators.exceptions import FieldError
-from calibrators.fit import fit_profile
-from calibrators.fit_stream import fit_profile_stream
+from calibrators.core.errors import FieldError
+from calibrators.data import synthetic_dump
+from calibrators.fit import Mapper, dask_client, fit_profile, fit_profile_stream, parse_dask_spec
 from calibrators.io import load_parquet, save_parquet
-from calibrators.synthetic import synthetic_dump
 
 pytest.importorskip("distributed")
 

@@ -17,7 +17,7 @@ def test_in_distribution_feedback_raises_no_alarm_in_2000_frames_and_a_shift_one
 
 def test_state_round_trips_and_alarms_are_kept_once(tmp_path):
     from calibrators import FitOptions, fit_profile
-    from calibrators.synthetic import DEFAULT_DEPTH_K, synthetic_dump
+    from calibrators.data import DEFAULT_DEPTH_K, synthetic_dump
 
     profile = fit_profile(synthetic_dump(n_frames=120, seed=3), FitOptions(holdout=0.3))
     bad = collect_evidence(synthetic_dump(n_frames=60, seed=4, depth_k={

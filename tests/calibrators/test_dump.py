@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from calibrators.dump import Dump
+from calibrators.data import Dump
 
 CLASSES = ("car", "pedestrian")
 
@@ -136,7 +136,7 @@ def test_hypotheses_round_trip_through_npz_and_old_dumps_still_load(tmp_path):
 
 
 def test_npz_hypothesis_shapes_are_checked_before_reading(tmp_path):
-    from calibrators.exceptions import FieldError
+    from calibrators.core.errors import FieldError
     from calibrators.io import load_dump, save_dump
 
     save_dump(tmp_path / "ok.npz", make(**_hypotheses()))

@@ -8,14 +8,11 @@ import pytest
 from scipy.special import expit, softmax
 
 from calibrators import fit_profile
-from calibrators.apply import apply_profile
-from calibrators.dump import Dump, concat_frames
-from calibrators.evaluate import evaluate
+from calibrators.data import Dump, concat_frames, synthetic_dump
+from calibrators.evaluation import evaluate, match_dump
 from calibrators.io import load_dump, load_parquet, open_parquet, save_dump, save_parquet
-from calibrators.matched import match_dump
+from calibrators.profile import apply_profile, calibrate_detections
 from calibrators.scores import TemperatureScaler
-from calibrators.serving import calibrate_detections
-from calibrators.synthetic import synthetic_dump
 
 CLASSES = ("bus", "trailer")
 

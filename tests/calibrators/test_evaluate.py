@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.special import logit
 
-from calibrators.dump import Dump
-from calibrators.evaluate import EvaluationReport, evaluate
+from calibrators.data import Dump
+from calibrators.evaluation import EvaluationReport, evaluate
 
 CLASSES = ("car", "pedestrian", "traffic_cone", "barrier")
 

@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from calibrators.data import CLASSES10, DEFAULT_DEPTH_K, synthetic_dump
 from calibrators.fit import fit_profile
 from calibrators.profile import CalibrationProfile
-from calibrators.synthetic import CLASSES10, DEFAULT_DEPTH_K, synthetic_dump
 
 
 def test_synthetic_dump_is_deterministic_and_plausible():

@@ -18,10 +18,10 @@ from calibrators import (
     resolve_cov_source,
     tp_residuals,
 )
-from calibrators.exceptions import FieldError
-from calibrators.fit_regions import xy_mahalanobis
-from calibrators.hypotheses import hypotheses_covariance
-from calibrators.synthetic import synthetic_dump
+from calibrators.core.errors import FieldError
+from calibrators.covariance import hypotheses_covariance
+from calibrators.data import synthetic_dump
+from calibrators.regions import xy_mahalanobis
 
 LEVELS = (0.5, 0.9, 0.95)
 H = 6

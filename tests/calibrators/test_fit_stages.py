@@ -15,8 +15,8 @@ from calibrators import (
     match_dump,
     tp_residuals,
 )
-from calibrators.fit_regions import xy_mahalanobis
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
+from calibrators.regions import xy_mahalanobis
 
 LEVELS = (0.5, 0.9, 0.95, 0.99)
 

@@ -7,15 +7,14 @@ import numpy as np
 import pytest
 
 import calibrators.scores._temperature as temperature
-from calibrators import fit_stream
+from calibrators.core.errors import OptionError
 from calibrators.covariance import fit_inputs
 from calibrators.covariance._depth_nll import BinSums, depth_bins
-from calibrators.fit import fit_profile
-from calibrators.fit_stream import check_stream_options, fit_profile_stream
+from calibrators.data import synthetic_dump
+from calibrators.fit import FitOptions, check_stream_options, fit_profile, fit_profile_stream
+from calibrators.fit import _stream as fit_stream
 from calibrators.io import load_parquet, save_parquet
-from calibrators.options import FitOptions, OptionError
 from calibrators.scores import SigmoidBins
-from calibrators.synthetic import synthetic_dump
 
 THESIS = {"score_method": "temperature", "cov_method": "depth", "region_method": "gaussian"}
 

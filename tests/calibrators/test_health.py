@@ -6,9 +6,8 @@ import numpy as np
 import pytest
 
 from calibrators import FitOptions, fit_profile, summarize
-from calibrators.matched import select_detections
+from calibrators.data import select_detections, synthetic_dump
 from calibrators.monitoring import HealthCounts, collect_evidence, health_figures
-from calibrators.synthetic import synthetic_dump
 
 
 @pytest.fixture(scope="module")

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from calibrators.hypotheses import hypotheses_covariance
+from calibrators.covariance import hypotheses_covariance
 
 
 def _boxes(centres: list[list[float]]) -> np.ndarray:

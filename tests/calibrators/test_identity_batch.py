@@ -9,9 +9,9 @@ import pyarrow as pa
 import pytest
 
 from calibrators import Detections, apply_profile, fit_profile
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import synthetic_dump
 from calibrators.io import calibrated_document
-from calibrators.synthetic import synthetic_dump
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,9 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 
 from calibrators import apply_profile, fit_profile
-from calibrators.fit_stream import fit_profile_stream
+from calibrators.data import synthetic_dump
+from calibrators.fit import fit_profile_stream
 from calibrators.io import save_parquet
-from calibrators.synthetic import synthetic_dump
 from tests.identity_cases import CASES, awkward, shuffled
 
 FAST = settings(max_examples=15, deadline=None)
@@ -84,7 +84,7 @@ def test_fit_profile_stream_is_the_same_whatever_the_order(dump, case, tmp_path)
         fits.append(fit_profile_stream(tmp_path / name, holdout=0.25, calibration=0))
     a, b = fits
     assert a.provenance["n_holdout_frames"] == b.provenance["n_holdout_frames"]
-    # the streamed fit's own tolerance (module docstring of calibrators.fit_stream: T and
+    # the streamed fit's own tolerance (module docstring of calibrators.fit._stream: T and
     # every k to 1e-6 relative): its binned sums and Brent steps follow the parts' rows
     assert b.temperature == pytest.approx(a.temperature, rel=1e-6)
     for c in a.classes:

@@ -10,8 +10,8 @@ import zipfile
 import numpy as np
 import pytest
 
-from calibrators.dump import Dump
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import Dump
 from calibrators.io import (
     file_sha256,
     load_dump,

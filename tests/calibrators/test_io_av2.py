@@ -16,7 +16,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.io import load_dump
 from calibrators.io.argoverse2 import AV2_CATEGORIES, load_av2
 from tests.calibrators.reader_checks import (

@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.io import load_dump
 from calibrators.io.mmdet3d import load_mmdet3d
 from tests.calibrators.reader_checks import (

@@ -9,8 +9,8 @@ import json
 import numpy as np
 import pytest
 
-from calibrators.dump import Dump
-from calibrators.evaluate import evaluate
+from calibrators.data import Dump
+from calibrators.evaluation import evaluate
 from calibrators.io import (
     calibrate_results_document,
     ellipses_json,
@@ -356,8 +356,8 @@ def test_calibrate_results_document_refuses_bad_input(doc, scores, kwargs, messa
 
 def _served(method="conformal", groups=("car 0-15 m", "car 15-30 m", "pooled classes 30+ m")):
     """A stand-in for `CalibratedDetections` of 3 detections at levels 0.5 and 0.9."""
+    from calibrators.profile import CalibratedDetections
     from calibrators.regions import Ellipse
-    from calibrators.serving import CalibratedDetections
 
     regions = {} if method is None else {
         q: Ellipse(np.array([1.0, 2.0, 3.0]) * r, np.array([0.5, 1.0, 1.5]) * r,

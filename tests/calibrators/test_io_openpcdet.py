@@ -19,7 +19,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
 from calibrators.io import load_dump
 from calibrators.io.openpcdet import load_openpcdet
 from calibrators.io.pickle_safe import load_restricted

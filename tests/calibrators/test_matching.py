@@ -1,12 +1,12 @@
-"""calibrators.matching: the nuScenes devkit's greedy matching rule, case by case."""
+"""calibrators.evaluation._matching: the nuScenes devkit's greedy matching rule, case by case."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-import calibrators.matching as matching
-from calibrators.matching import DEFAULT_CLASS_RANGE, MatchResult, in_range, match
+import calibrators.evaluation._matching as matching
+from calibrators.evaluation import DEFAULT_CLASS_RANGE, MatchResult, in_range, match
 
 
 def _match(dets, gts, threshold=2.0):

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from calibrators import summarize
+from calibrators.data import synthetic_dump
 from calibrators.fit import fit_profile
 from calibrators.profile import CalibrationProfile
 from calibrators.scores import class_probabilities, modulate_logits
-from calibrators.synthetic import synthetic_dump
 
 CLASSES = ("car", "pedestrian")
 

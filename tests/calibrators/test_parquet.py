@@ -11,10 +11,9 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
-from calibrators.dump import concat_frames
-from calibrators.exceptions import FieldError
+from calibrators.core.errors import FieldError
+from calibrators.data import concat_frames, synthetic_dump
 from calibrators.io import ParquetWriter, load_parquet, open_parquet, save_parquet
-from calibrators.synthetic import synthetic_dump
 
 ARRAYS = ("frame_ids", "det_frame", "det_logits", "det_boxes", "det_cov", "gt_frame",
           "gt_labels", "gt_boxes", "ego_translation")
@@ -156,7 +155,7 @@ def test_missing_part_file_is_named(dataset):
 
 
 def test_box_hypotheses_round_trip_and_survive_a_min_score_fit(tmp_path):
-    from calibrators.fit_stream import fit_profile_stream
+    from calibrators.fit import fit_profile_stream
 
     dump = synthetic_dump(n_frames=12, n_gt_per_frame=6, seed=4)
     rng = np.random.default_rng(0)

@@ -241,8 +241,8 @@ def test_calibrate_layers_and_none_sources_refuse_wrong_inputs():
 
 
 def test_no_detections_calibrate_to_empty_arrays():
+    from calibrators.data import synthetic_dump
     from calibrators.fit import fit_profile
-    from calibrators.synthetic import synthetic_dump
 
     profile = fit_profile(synthetic_dump(n_frames=10, seed=1), cov_source="given")
     res = profile.calibrate(logits=np.zeros((0, 10)), boxes=np.zeros((0, 9)),
@@ -252,8 +252,8 @@ def test_no_detections_calibrate_to_empty_arrays():
 
 
 def test_twenty_levels_and_another_ellipse_confidence_are_served():
+    from calibrators.data import synthetic_dump
     from calibrators.fit import fit_profile
-    from calibrators.synthetic import synthetic_dump
 
     dump = synthetic_dump(n_frames=20, seed=1)
     profile = fit_profile(dump, cov_source="given", region_method="conformal", min_group=30)

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from calibrators import CalibrationProfile, fit_profile
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 
 DATA = Path(__file__).parent / "data"
 

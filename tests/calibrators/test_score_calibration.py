@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 from scipy.special import expit
 
-from calibrators.exceptions import NotFittedError
+from calibrators.core.errors import NotFittedError
 from calibrators.metrics import expected_calibration_error
-from calibrators.score_calibration import (
+from calibrators.scores import (
     SCORE_CALIBRATION_METHODS,
     ClassTemperatureScaler,
     HistogramBinning,

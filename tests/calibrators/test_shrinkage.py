@@ -8,8 +8,8 @@ import json
 import numpy as np
 import pytest
 
+from calibrators.core.errors import NotFittedError
 from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, add_depth_term
-from calibrators.exceptions import NotFittedError
 from calibrators.metrics import regression_nll
 
 TRUTH = {"car": (0.5, 0.02), "pedestrian": (2.0, 0.01), "barrier": (1.0, 0.05)}

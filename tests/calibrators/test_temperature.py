@@ -8,7 +8,7 @@ from scipy.optimize import minimize_scalar
 from scipy.special import expit, log_expit, logsumexp, softmax
 
 import calibrators.scores._temperature as temperature
-from calibrators.exceptions import NotFittedError
+from calibrators.core.errors import NotFittedError
 from calibrators.scores import SIGMOID_BINS, SUBSAMPLE_MIN, TemperatureScaler, class_probabilities
 from calibrators.scores._temperature import (
     _binned_sigmoid_nll,

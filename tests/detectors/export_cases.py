@@ -18,9 +18,8 @@ import numpy as np
 
 import detectors
 from calibrators import CalibrationProfile, fit_profile, load_dump
-from calibrators.dump import Dump
-from calibrators.serving import CalibratedDetections
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import Dump, synthetic_dump
+from calibrators.profile import CalibratedDetections
 
 SHIPPED_DUMP = Path(detectors.__file__).parent / "data" / "lidar_val.npz"
 V1_PROFILE = Path(__file__).parents[1] / "calibrators" / "data" / "profile_v1.json"

@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from calibrators import Dump, fit_profile
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 from detectors.export import build_graph, export_profile
 from tests.detectors.export_cases import LEVELS, TOLERANCE, differences
 

@@ -7,7 +7,7 @@ import dataclasses
 import pytest
 
 from calibrators import CalibrationProfile, fit_profile
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 from detectors.export import ExportError, build_graph, export_profile
 from detectors.export import graph as graph_module
 from tests.detectors.export_cases import V1_PROFILE

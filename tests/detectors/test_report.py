@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from calibrators import layer_spread, match_dump, metrics, summarize
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 from detectors.registry import weights_path
 from detectors.report.attention import attention_stats, binned, closest_gt_iou, spread
 from detectors.report.dumps import merged_sampling_dump

@@ -16,7 +16,7 @@ import pytest
 import torch
 
 from calibrators import evaluate, load_dump, match_dump, metrics, tp_residuals
-from calibrators.hypotheses import hypotheses_covariance
+from calibrators.covariance import hypotheses_covariance
 from detectors.model import Detector
 from detectors.registry import load_weights, save_weights
 from detectors.report.attention import AttentionStats, Binned, binned

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
+from calibrators.data import synthetic_dump
 from calibrators.fit import fit_profile
-from calibrators.synthetic import synthetic_dump
 from detectors import build_detector
 from detectors.show import render_frame
 

@@ -115,7 +115,7 @@ def http(server: Server) -> Iterator[httpx.Client]:
 @pytest.fixture(scope="session")
 def dump():
     """The synthetic validation dump the e2e fits use (sigmoid, 10 classes, det_cov)."""
-    from calibrators.synthetic import synthetic_dump
+    from calibrators.data import synthetic_dump
 
     return synthetic_dump(n_frames=40, seed=1)
 
@@ -175,8 +175,8 @@ def own_server(tmp_path: Path) -> Iterator[Server]:
 def large_dump_npz(tmp_path_factory: pytest.TempPathFactory) -> bytes:
     """A synthetic dump large enough that its fit runs for a few tenths of a second (400
     frames, ~8 MB): long enough to act while a job runs."""
+    from calibrators.data import synthetic_dump
     from calibrators.io import save_dump
-    from calibrators.synthetic import synthetic_dump
 
     path = tmp_path_factory.mktemp("dump") / "large.npz"
     save_dump(path, synthetic_dump(n_frames=400, seed=2))

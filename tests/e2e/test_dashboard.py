@@ -19,7 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 
-from calibrators.synthetic import synthetic_dump
+from calibrators.data import synthetic_dump
 from tests.app.feedback_frames import feedback_frames
 from tests.e2e.conftest import ADMIN, Server, serving, wait_job
 

@@ -19,8 +19,8 @@ import httpx
 import numpy as np
 import pytest
 
+from calibrators.data import DEFAULT_DEPTH_K, synthetic_dump
 from calibrators.io import save_dump
-from calibrators.synthetic import DEFAULT_DEPTH_K, synthetic_dump
 from tests.app.feedback_frames import feedback_frames, npz_bytes
 from tests.e2e.conftest import ADMIN, _detcal, wait_job
 

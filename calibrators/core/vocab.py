@@ -1,0 +1,82 @@
+"""The library's vocabulary, defined once: box fields, covariance sources, score modes,
+angle wrapping, quaternion yaw and the installed version (JSON-safe values:
+`calibrators.core.json_safe`).
+
+Every other module (and `detectors/`, `app/`) imports these names instead of spelling them
+again.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+
+import numpy as np
+
+#: The 9 fields of a box row `[.., 9]`, in column order (nuScenes convention, z = centre).
+BOX_FIELDS: tuple[str, ...] = ("x", "y", "z", "w", "l", "h", "yaw", "vx", "vy")
+#: Column of each box field.
+BOX_INDEX: dict[str, int] = {name: i for i, name in enumerate(BOX_FIELDS)}
+#: Where a profile's raw covariance Σ comes from: the detection's own `covariance` (`given`),
+#: the spread of its box across decoder layers (`layers`), or nowhere (`none`, Σ = 0), or the
+#: group-score-weighted spread of its H box hypotheses (`hypotheses`, group regression heads).
+COV_SOURCES: tuple[str, ...] = ("given", "layers", "none", "hypotheses")
+#: What a fit accepts for `cov_source`: a source, or `auto` (resolved from the dump).
+COV_SOURCE_CHOICES: tuple[str, ...] = ("auto", *COV_SOURCES)
+#: `sigmoid`: C independent class logits; `softmax`: C + 1 columns, the last is no-object.
+SCORE_MODES: tuple[str, ...] = ("sigmoid", "softmax")
+#: Score calibration of a profile: one global temperature (the thesis), or a per-class
+#: calibrator of the label's logit (`calibrators.scores`).
+SCORE_METHODS: tuple[str, ...] = ("temperature", "class_temperature", "platt", "platt_range",
+                                  "isotonic", "histogram")
+#: Covariance scaling: `Σ + k_c·d·I` (depth, the thesis) or `s_c·Σ + k_c·d·I` (shrinkage).
+COV_METHODS: tuple[str, ...] = ("depth", "shrinkage")
+#: Uncertainty regions: χ²₂ radii of a Gaussian, or split-conformal radii per class × range.
+REGION_METHODS: tuple[str, ...] = ("gaussian", "conformal")
+
+
+def check_dims(dims: str | Sequence[str]) -> tuple[str, ...]:
+    """Regression dims as a tuple of distinct box fields; `"x,y"` is accepted for `("x", "y")`.
+
+    Raises ValueError naming `dims` for an empty, unknown or repeated field.
+    """
+    if isinstance(dims, str):
+        dims = [d.strip() for d in dims.split(",") if d.strip()]
+    try:
+        out = tuple(str(d) for d in dims)
+    except TypeError:
+        raise ValueError(f"dims must be a list of box fields, got {type(dims).__name__}") from None
+    if not out:
+        raise ValueError("dims must name at least one box field")
+    for d in out:
+        if d not in BOX_INDEX:
+            raise ValueError(f"dims has unknown box field {d!r}; known: {list(BOX_FIELDS)}")
+    if len(set(out)) != len(out):
+        raise ValueError(f"dims has duplicate names: {list(out)}")
+    return out
+
+
+def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
+    """Angles (rad) wrapped to (-pi, pi], elementwise."""
+    return np.pi - np.mod(np.pi - np.asarray(angle, dtype=np.float64), 2.0 * np.pi)
+
+
+def quaternion_yaw(w: float, x: float, y: float, z: float) -> float:
+    """Yaw about +z of the rotation quaternion (w, x, y, z), as the nuScenes devkit's
+    `quaternion_yaw`; a non-unit quaternion gives the yaw of its normalised rotation.
+
+    Raises ValueError for the zero quaternion (no rotation is defined).
+    """
+    if w * w + x * x + y * y + z * z == 0:
+        raise ValueError("rotation is the zero quaternion")
+    return float(math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z))
+
+
+def detcal_version() -> str:
+    """The installed detcal distribution's version, `"unknown"` when run from a bare tree."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("detcal")
+    except PackageNotFoundError:
+        return "unknown"

@@ -1,0 +1,162 @@
+"""The covariance and region stages of a fit.
+
+Covariance: the candidates `Σ + k_c·d·I` (depth, the thesis) and `s_c·Σ + k_c·d·I`
+(shrinkage) are fit by Brent on the Gaussian NLL of the training part's true-positive
+residuals and scored by the regression NLL on the calibration part; `auto` picks the lower.
+Regions: split conformal (`ConformalRegions`) on the Mahalanobis distance of the calibration
+part's true positives under the fitted `Σ'` (x, y block, the one the ellipses are drawn
+from), grouped by class × distance bin; those frames were not used to fit `Σ'`, so the
+radii keep their finite-sample guarantee. `gaussian` keeps the χ²₂ radii.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from calibrators import metrics
+from calibrators.core.vocab import COV_METHODS
+from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, raw_covariances
+from calibrators.data import Dump
+from calibrators.evaluation import MatchResult, tp_residuals
+from calibrators.regions import ConformalRegions, xy_mahalanobis
+
+__all__ = ["CovarianceFit", "RegionFit", "covariance_fit", "fit_covariance_stage",
+           "fit_region_stage"]
+
+#: Shrinkage factors searched (a layer spread of mm² may need s in the thousands).
+SCALE_BOUNDS = (1e-3, 1e4)
+
+
+@dataclass
+class CovarianceFit:
+    """The fitted covariance stage: `method`, k per class (and pooled), s per class (and
+    pooled; 1 for depth), the classes on the pooled pair, each candidate's held-out NLL."""
+
+    method: str
+    depth_k: dict[str, float]
+    pooled_k: float
+    scale: dict[str, float]
+    pooled_scale: float
+    fallback_classes: tuple[str, ...]
+    candidates: dict[str, dict[str, float | None]] = field(default_factory=dict)
+
+
+@dataclass
+class RegionFit:
+    """The fitted region stage: `method`, the conformal radii's dict form (None: gaussian) and
+    the calibration true positives it was fit on."""
+
+    method: str
+    conformal: dict[str, Any] | None
+    n_calibration: int
+
+
+def _tp_data(dump: Dump, matched: MatchResult, dims: tuple[str, ...], source: str
+             ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+    """Residuals `[M, D]`, raw Σ `[M, D, D]` (None for source none), distances and class
+    names `[M]` of the TPs."""
+    tp = np.asarray(matched.tp, dtype=bool)
+    cov = raw_covariances(dump, source, dims)
+    names = np.asarray(dump.classes)[dump.det_labels[tp]]
+    return (tp_residuals(dump, matched, dims), None if cov is None else cov[tp],
+            dump.det_distance[tp], names)
+
+
+def _scaler(method: str, min_samples: int) -> Any:
+    if method == "depth":
+        return DepthScaler(min_samples=min_samples)
+    return ShrinkageDepthScaler(min_samples=min_samples, scale_bounds=SCALE_BOUNDS)
+
+
+def fit_covariance_stage(fit_on: tuple[Dump, MatchResult], train: tuple[Dump, MatchResult],
+                         calib: tuple[Dump, MatchResult] | None, dims: tuple[str, ...],
+                         source: str, method: str, min_samples: int) -> CovarianceFit:
+    """Choose on (`train`, `calib`) when `method` is auto, then fit the chosen scaler on
+    `fit_on` (the training part when conformal radii follow, else the whole fit part)."""
+    names = list(COV_METHODS) if method == "auto" else [method]
+    if source == "none" or (method == "auto" and calib is None):
+        names = ["depth"] if method == "auto" else names   # no Σ to shrink / nothing to choose
+    candidates: dict[str, dict[str, float | None]] = {}
+    if calib is not None and len(names) > 1:
+        res, cov, dist, cls = _tp_data(*train, dims, source)
+        c_res, c_cov, c_dist, c_cls = _tp_data(*calib, dims, source)
+        for name in names:
+            scaler = _fit_scaler(name, min_samples, res, cov, dist, cls, source)
+            candidates[name] = {"nll": _nll(c_res, scaler.transform(c_cov, c_dist, c_cls))}
+        chosen = min(names, key=lambda n: np.inf if candidates[n]["nll"] is None
+                     else candidates[n]["nll"])
+    else:
+        chosen = names[0]
+    scaler = _fit_scaler(chosen, min_samples, *_tp_data(*fit_on, dims, source), source)
+    return covariance_fit(scaler, fit_on[0].classes, chosen, candidates)
+
+
+def covariance_fit(scaler: Any, classes: tuple[str, ...], method: str,
+                   candidates: dict[str, dict[str, float | None]] | None = None
+                   ) -> CovarianceFit:
+    """The `CovarianceFit` of a fitted depth or shrinkage `scaler` (classes by name): every
+    class of `classes` gets its own k, or the pooled one when it had too few (or no)
+    matches."""
+    chosen = method
+    fallback = {str(c) for c in scaler.fallback_classes_}
+    s = getattr(scaler, "s_", {})
+    pooled_s = float(getattr(scaler, "pooled_s_", 1.0))
+    return CovarianceFit(
+        method=chosen,
+        depth_k={c: float(scaler.k_.get(c, scaler.pooled_k_)) for c in classes},
+        pooled_k=float(scaler.pooled_k_),
+        scale={c: float(s.get(c, pooled_s)) for c in classes} if chosen == "shrinkage" else {},
+        pooled_scale=pooled_s,
+        fallback_classes=tuple(c for c in classes if c not in scaler.k_ or c in fallback),
+        candidates=candidates or {})
+
+
+def _fit_scaler(name: str, min_samples: int, res: np.ndarray, cov: np.ndarray | None,
+                dist: np.ndarray, cls: np.ndarray, source: str) -> Any:
+    try:
+        with warnings.catch_warnings():   # s at a bound: Σ carries no (or all) information
+            warnings.filterwarnings("ignore", "shrinkage s for class", RuntimeWarning)
+            return _scaler(name, min_samples).fit(res, cov, dist, cls)
+    except ValueError as exc:
+        raise ValueError(f"{name} covariance scaling failed with cov_source={source!r}: {exc}"
+                         ) from exc
+
+
+def _nll(res: np.ndarray, cov: np.ndarray) -> float | None:
+    """Regression NLL, or None when a Σ' is singular (the density is undefined)."""
+    if len(res) == 0:
+        return None
+    try:
+        return float(metrics.regression_nll(res, cov))
+    except ValueError:
+        return None
+
+
+
+
+def fit_region_stage(calib: tuple[Dump, MatchResult] | None, covariances: np.ndarray | None,
+                     dims: tuple[str, ...], method: str, min_group: int,
+                     distance_edges: tuple[float, ...]) -> RegionFit | None:
+    """The region stage from the calibration part and `covariances [N, D, D]`, the fitted
+    Σ' of its detections (None when there is no calibration part). None when `dims` lack
+    x or y (no ellipse to serve)."""
+    if "x" not in dims or "y" not in dims:
+        return None
+    n_tp = 0 if calib is None else int(np.count_nonzero(calib[1].tp))
+    if method == "gaussian" or (method == "auto" and n_tp < min_group):
+        return RegionFit("gaussian", None, n_tp)
+    if calib is None or covariances is None or n_tp == 0:
+        raise ValueError("region_method='conformal' needs a calibration part with true "
+                         "positives (calibration > 0)")
+    dump, matched = calib
+    tp = np.asarray(matched.tp, dtype=bool)
+    scores = xy_mahalanobis(tp_residuals(dump, matched, dims), covariances[tp], dims)
+    regions = ConformalRegions(distance_edges=(0.0, *distance_edges, float("inf")),
+                               min_group=min_group)
+    regions.fit(scores, dump.det_labels[tp], dump.det_distance[tp],
+                all_classes=list(range(len(dump.classes))))
+    return RegionFit("conformal", regions.to_dict(), n_tp)

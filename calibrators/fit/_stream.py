@@ -1,0 +1,291 @@
+"""Fit a calibration profile from a Parquet dataset in bounded memory (docs/science.md,
+"Streamed fit"), in this process or on Dask workers.
+
+`fit_profile_stream(path, options)` gives the profile `fit_profile(load_parquet(path),
+options)` gives, T and every k to 1e-6 relative, holding one part of the dataset at a time:
+
+1. the hold-out frames are drawn as `fit_profile` draws them (`held_out_frames`, same seed);
+2. sigmoid only, a light pass over the logits alone: the fit rows and the range of the
+   predicted logits, the grid `TemperatureScaler` bins them on;
+3. first pass, per part (`stream_chunks.first_pass`): the `min_score` filter, matching of the
+   part's fit frames, row counts, the `SigmoidBins` of the predicted logits on that grid
+   (small fits: the logits themselves), and the depth-scaling `BinSums` of the true
+   positives per covariance source; the sums over the parts are the statistics
+   `TemperatureScaler` and `DepthScaler` bin in memory, so T and k come from the same Brent
+   searches;
+4. softmax temperature, which has no finite statistic: one pass over the parts' logits per
+   evaluation of Brent's root finder on the NLL's derivative (the parts' sums add up; the
+   first pass returned every fit row's target column, 2 bytes a row, so these passes
+   neither match nor read boxes), started where the same seeded subsample (gathered from
+   the parts) puts T;
+5. the profile is assembled as `fit_profile` assembles it; its report summarises a seeded
+   sample of at most `report_detections` detections of whole fit (and held-out) frames,
+   all of them when they fit (the report then equals the in-memory one), and says so.
+
+What needs all the data at once is refused with an `OptionError` naming the option
+(`check_stream_options`): choosing among `auto` candidates on a calibration part, per-class
+score calibrators, shrinkage, conformal regions.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import replace
+from functools import reduce
+from operator import add
+from typing import Any
+
+import numpy as np
+
+from calibrators.core.errors import OptionError
+from calibrators.core.vocab import COV_SOURCES
+from calibrators.covariance import DepthScaler, resolve_cov_source
+from calibrators.data import canonical_order, concat_frames, held_out_frames
+from calibrators.evaluation import ProfileReport, summarize
+from calibrators.fit._chunks import (
+    Chunk,
+    FirstPass,
+    first_pass,
+    frames_of,
+    sigmoid_range,
+    softmax_rows,
+    softmax_sums,
+)
+from calibrators.fit._distributed import Mapper
+from calibrators.fit._options import FitOptions
+from calibrators.fit._pipeline import (
+    base_profile,
+    check_fit_input,
+    selection_of,
+    source_stage,
+    versioned,
+)
+from calibrators.fit._region_stage import CovarianceFit, covariance_fit, fit_region_stage
+from calibrators.fit._score_stage import ScoreFit
+from calibrators.io.parquet import ParquetDataset, open_parquet
+from calibrators.profile import CalibrationProfile, make_provenance
+from calibrators.scores import (
+    SIGMOID_BINS,
+    SUBSAMPLE_MIN,
+    SigmoidBins,
+    TemperatureScaler,
+    sigmoid_nll,
+    softmax_mean,
+    subsample_rows,
+    subsample_start,
+)
+
+#: Detections of whole frames the report summarises at most (per part: fit, held out).
+REPORT_DETECTIONS = 500_000
+
+Progress = Callable[[str, float], None]
+
+
+def check_stream_options(options: FitOptions, n_fit_frames: int | None = None) -> None:
+    """Raise `OptionError` naming the option when a streamed fit cannot give what
+    `fit_profile` gives with `options`: anything but temperature, depth and gaussian regions
+    (`auto` means those when there is no calibration part: `calibration=0`, or fewer than 2
+    fit frames, `n_fit_frames`)."""
+    no_calibration = options.calibration <= 0 or (n_fit_frames is not None and n_fit_frames < 2)
+    for name, thesis in (("score_method", "temperature"), ("cov_method", "depth"),
+                         ("region_method", "gaussian")):
+        value = getattr(options, name)
+        if value == thesis or (value == "auto" and no_calibration):
+            continue
+        why = ("chooses among candidates on a calibration part, each fit on all of the "
+               "training part at once" if value == "auto" else
+               "needs all the data at once (no finite per-chunk statistic)")
+        raise OptionError(name, f"the streamed fit cannot reproduce {name}={value!r}: it "
+                                f"{why}; use {name}={thesis!r}" +
+                          (" or calibration=0" if value == "auto" else ""))
+
+
+def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: Any = None,
+                       progress: Progress | None = None,
+                       report_detections: int = REPORT_DETECTIONS,
+                       **overrides: Any) -> CalibrationProfile:
+    """Fit a profile from the Parquet dataset at `path` (module docstring).
+
+    options / overrides: as `fit_profile`. client: a `distributed.Client` to run the
+    per-part work on (None: in this process). progress: `progress(stage, fraction)`.
+    Raises `OptionError` for options a streamed fit cannot reproduce, `FieldError` for a bad
+    dataset, ValueError for data that cannot be fit (the messages of `fit_profile`).
+    """
+    opts = options if options is not None else FitOptions()
+    if not isinstance(opts, FitOptions):
+        raise OptionError("options", f"options must be a FitOptions, got {type(opts).__name__}")
+    if overrides:
+        opts = FitOptions.from_dict({**opts.to_dict(), **overrides})
+    report_progress = progress if progress is not None else (lambda stage, fraction: None)
+    ds = open_parquet(path)
+    empty = ds.empty_dump()
+    source = check_fit_input(empty, opts)
+    held = held_out_frames(ds.frames()[0], opts.holdout, opts.seed)
+    check_stream_options(opts, ds.n_frames - int(held.sum()))
+    sources = (source, *_other_sources(empty, source, opts))
+    mapper = Mapper(client)
+
+    report_progress("match", 0.1)
+    chunks = _chunks(ds, held, opts)
+    span = None
+    if ds.score_mode == "sigmoid":   # the grid of the sigmoid bins, from the logits alone
+        ranges = mapper.map(sigmoid_range, chunks)
+        if sum(r[0] for r in ranges) > SIGMOID_BINS:
+            span = (min(r[1] for r in ranges), max(r[2] for r in ranges))
+    firsts: list[FirstPass] = mapper.map(first_pass, chunks, sources=sources, span=span)
+    counts = np.array([f.n_fit_detections for f in firsts])
+    if sum(int(f.fit_per_frame.sum() + f.held_per_frame.sum()) for f in firsts) == 0:
+        raise ValueError(f"min_score={opts.min_score} leaves no detection to fit on")
+    n_tp = sum(f.n_tp for f in firsts)
+    if n_tp == 0:
+        raise ValueError(f"no detection matched ground truth within {opts.threshold} m "
+                         f"(threshold); check the dump's coordinates and classes")
+    offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    chunks = [replace(c, offset=int(o)) for c, o in zip(chunks, offsets, strict=True)]
+
+    report_progress("scores", 0.25)
+    temperature = _temperature(ds, opts, chunks, firsts, int(counts.sum()), mapper)
+    report_progress("covariance", 0.4)
+    covs = {s: _depth(ds, s, firsts, opts) for s in sources}
+    scores = ScoreFit(method="temperature", temperature=temperature, params=None)
+    provenance = make_provenance(
+        dump_sha256=ds.source_sha256, n_frames=ds.n_frames, n_detections=ds.n_detections,
+        n_ground_truth=ds.n_ground_truth, n_fit_frames=ds.n_frames - int(held.sum()),
+        n_fit_detections=int(counts.sum()), n_holdout_frames=int(held.sum()), n_matched=n_tp,
+        holdout=opts.holdout, seed=int(opts.seed), n_calibration_frames=0,
+        options=opts.to_dict())
+    profile = base_profile(empty, opts, scores, covs[source], source, provenance)
+    region = fit_region_stage(None, None, opts.dims, "gaussian", opts.min_group,
+                              opts.distance_edges)
+    profile = replace(profile, regions=source_stage(covs[source], region)["regions"])
+    if opts.other_sources:
+        profile = replace(profile, sources={s: source_stage(covs[s], region)
+                                            for s in sources[1:]} or None)
+    profile = versioned(profile)
+
+    report_progress("report", 0.6)
+    report = _report(profile, opts, chunks, firsts, held, report_detections, mapper,
+                     selection_of(scores, covs[source], region))
+    report_progress("done", 1.0)
+    return replace(profile, report=report)
+
+
+def _other_sources(empty: Any, source: str, opts: FitOptions) -> tuple[str, ...]:
+    """The covariance sources besides `source` the dataset allows (with `other_sources`)."""
+    if not opts.other_sources:
+        return ()
+    out = []
+    for other in COV_SOURCES:
+        if other == source:
+            continue
+        try:
+            resolve_cov_source(empty, other, opts.dims)
+        except OptionError:
+            continue
+        out.append(other)
+    return tuple(out)
+
+
+def _chunks(ds: ParquetDataset, held: np.ndarray, opts: FitOptions) -> list[Chunk]:
+    ids, ego = ds.frames()
+    return [Chunk(dataset=ds, index=i, held=held[p.first:p.stop],
+                  frame_ids=ids[p.first:p.stop], ego=None if ego is None else ego[p.first:p.stop],
+                  threshold=opts.threshold, min_score=opts.min_score,
+                  modulation=opts.modulation, dims=opts.dims)
+            for i, p in enumerate(ds.parts)]
+
+
+def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
+                 firsts: list[FirstPass], n: int, mapper: Mapper) -> float:
+    """T as `TemperatureScaler.fit` finds it on all fit rows (module docstring, step 3)."""
+    scaler = TemperatureScaler(mode=ds.score_mode)
+    width = 1 if opts.modulation and ds.score_mode == "sigmoid" else ds.n_columns
+    if ds.score_mode == "sigmoid":
+        if n > SIGMOID_BINS:
+            bins: SigmoidBins = reduce(add, (f.sigmoid for f in firsts))
+            scaler.fit_bins(bins, width)
+        else:
+            s, y = (np.concatenate([f.sigmoid[i] for f in firsts]) for i in (0, 1))
+            scaler.fit_objective(sigmoid_nll(s, y), n, width)
+        return float(scaler.temperature_)
+
+    labels = [f.softmax_labels for f in firsts]
+
+    def value_grad(log_t: float) -> tuple[float, float]:
+        inv_t = float(np.exp(-log_t))
+        sums = mapper.map(softmax_sums, chunks, labels, inv_t=inv_t)
+        return softmax_mean(n, inv_t, *(sum(s[i] for s in sums) for i in range(3)))
+
+    start = None
+    if n >= SUBSAMPLE_MIN:
+        rows = subsample_rows(n)
+        local = [rows[(rows >= c.offset) & (rows < c.offset + f.n_fit_detections)] - c.offset
+                 for c, f in zip(chunks, firsts, strict=True)]
+        got = mapper.map(softmax_rows, chunks, local, labels)
+        start = subsample_start(np.concatenate([g[0] for g in got]),
+                                np.concatenate([g[1] for g in got]), scaler.log_bounds())
+    scaler.fit_gradient(value_grad, n, width, start)
+    return float(scaler.temperature_)
+
+
+def _depth(ds: ParquetDataset, source: str, firsts: list[FirstPass], opts: FitOptions
+           ) -> CovarianceFit:
+    """The depth stage of `source` from the parts' summed `BinSums` (groups named and ordered
+    as `DepthScaler.fit` names and orders them: by class name)."""
+    total = reduce(add, (f.bins[source] for f in firsts))
+    groups, pooled = total.finish()
+    present = sorted((ds.classes[g], g) for g in np.flatnonzero(total.n > 0))
+    try:
+        scaler = DepthScaler(min_samples=opts.min_samples).fit_binned(
+            [groups[g] for _, g in present], pooled, [name for name, _ in present],
+            len(opts.dims))
+    except ValueError as exc:
+        raise ValueError(f"depth covariance scaling failed with cov_source={source!r}: {exc}"
+                         ) from exc
+    return covariance_fit(scaler, ds.classes, "depth")
+
+
+def _report(profile: CalibrationProfile, opts: FitOptions, chunks: list[Chunk],
+            firsts: list[FirstPass], held: np.ndarray, budget: int, mapper: Mapper,
+            selection: dict[str, Any]) -> dict[str, Any]:
+    """The profile's report on seeded samples of whole fit and held-out frames (module
+    docstring, step 4); `sample` records what was summarised when not everything was."""
+    fit_counts = np.concatenate([f.fit_per_frame for f in firsts])
+    held_counts = np.concatenate([f.held_per_frame for f in firsts])
+    rng = np.random.default_rng(opts.seed)
+    fit_keep, fit_note = _sample(~held, fit_counts, budget, rng)
+    fit_summary = summarize(_gather(chunks, fit_keep, mapper), profile,
+                            threshold=opts.threshold)
+    held_summary, held_note = None, None
+    if held.any():
+        held_keep, held_note = _sample(held, held_counts, budget, rng)
+        held_summary = summarize(_gather(chunks, held_keep, mapper), profile,
+                                 threshold=opts.threshold)
+    out = ProfileReport(fit=fit_summary, holdout=held_summary, min_score=opts.min_score,
+                        threshold=opts.threshold, selection=selection).to_dict()
+    if fit_note or held_note:
+        out["sample"] = {"fit": fit_note, "holdout": held_note, "seed": int(opts.seed),
+                         "max_detections": int(budget)}
+    return out
+
+
+def _sample(frames: np.ndarray, counts: np.ndarray, budget: int, rng: np.random.Generator
+            ) -> tuple[np.ndarray, dict[str, int] | None]:
+    """`[F]` mask of whole frames among `frames` holding at most `budget` detections (at
+    least one frame; all when they fit, then no note), and the note of what was kept."""
+    index = np.flatnonzero(frames)
+    if counts[index].sum() <= budget:
+        return frames.copy(), None
+    order = rng.permutation(index)
+    n_keep = max(1, int(np.searchsorted(np.cumsum(counts[order]), budget, side="right")))
+    keep = np.zeros_like(frames)
+    keep[order[:n_keep]] = True
+    return keep, {"frames": n_keep, "of_frames": len(index),
+                  "detections": int(counts[keep].sum()), "of_detections": int(counts[index].sum())}
+
+
+def _gather(chunks: list[Chunk], keep: np.ndarray, mapper: Mapper) -> Any:
+    masks = [keep[c.dataset.parts[c.index].first:c.dataset.parts[c.index].stop] for c in chunks]
+    todo = [(c, m) for c, m in zip(chunks, masks, strict=True) if m.any()]
+    parts = mapper.map(frames_of, [c for c, _ in todo], [m for _, m in todo])
+    return canonical_order(concat_frames([p for p in parts if p is not None]))  # as fit_profile
