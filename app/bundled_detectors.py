@@ -12,8 +12,8 @@ from typing import Any
 
 import numpy as np
 
-from app.cache import LoadedProfile
-from app.errors import RequestError
+from app.calibrate.cache import LoadedProfile
+from app.http.errors import RequestError
 from app.schemas.calibrate import DetectionIn
 
 

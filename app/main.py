@@ -11,22 +11,22 @@ from contextlib import asynccontextmanager
 
 from fastapi import Depends, FastAPI
 
-from app.api_docs import install_docs
-from app.arrow_fast import ArrowCalibrateMiddleware
-from app.body import install_openapi
 from app.bundled_detectors import DetectorService
-from app.cache import ProfileCache
-from app.calibrate_calls import CalibrateEngine
+from app.calibrate.arrow_route import ArrowCalibrateMiddleware
+from app.calibrate.cache import ProfileCache
+from app.calibrate.engine import CalibrateEngine
+from app.calibrate.parent_watch import die_with_supervisor
+from app.calibrate.runner import CalibrateRunner
 from app.dashboard.page import DashboardRenderer
-from app.deps import AdminBeforeBodyMiddleware, refuse_empty_form_fields
-from app.errors import install_handlers
-from app.fields import FieldsMiddleware, fields_query
-from app.head import HeadAsGetMiddleware
-from app.jobs import JobRunner
-from app.limits import BodySizeLimitMiddleware
-from app.offload import CalibrateRunner
-from app.parent_watch import die_with_supervisor
-from app.prometheus import MetricsMiddleware, ServiceMetrics
+from app.fitting.runner import JobRunner
+from app.http.api_docs import install_docs
+from app.http.deps import AdminBeforeBodyMiddleware, refuse_empty_form_fields
+from app.http.errors import install_handlers
+from app.http.fields import FieldsMiddleware, fields_query
+from app.http.head import HeadAsGetMiddleware
+from app.http.json_body import install_openapi
+from app.http.limits import BodySizeLimitMiddleware
+from app.http.metrics import MetricsMiddleware, ServiceMetrics
 from app.routers import (
     aliases,
     audit,
@@ -35,8 +35,8 @@ from app.routers import (
     detect,
     feedback,
     fit,
-    health,
     jobs,
+    liveness,
     metrics,
     profile_health,
     profiles,
@@ -107,7 +107,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     install_openapi(app)
     # aliases and profile_health before profiles: /{name}/aliases is not /{name}/{version}
     summary = {jobs, profile_health, profiles}   # large answers: `?fields=` trims them
-    for module in (health, metrics, calibrate, fit, jobs, aliases, profile_health, profiles,
+    for module in (liveness, metrics, calibrate, fit, jobs, aliases, profile_health, profiles,
                    feedback, audit, detect, dashboard):
         app.include_router(module.router, dependencies=[Depends(fields_query)]
                            if module in summary else None)

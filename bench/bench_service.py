@@ -66,7 +66,7 @@ def serve_detcal(data_dir: Path, profile_json: str, port: int, *serve_args: str,
     store.add_profile("lidar", profile_json)
     store.close()
     detcal = ROOT / ".venv" / "bin" / "detcal"
-    cmd = [str(detcal)] if detcal.exists() else [sys.executable, "-m", "app.cli"]
+    cmd = [str(detcal)] if detcal.exists() else [sys.executable, "-m", "app.cli.main"]
     return subprocess.Popen([*cmd, "serve", "--port", str(port), "--data-dir", str(data_dir),
                              *serve_args, "--log-level", "warning"], cwd=ROOT,
                             env={**os.environ, **(env or {})}, stdout=subprocess.DEVNULL)

@@ -1,4 +1,4 @@
-"""`detcal train | dump | show`: the detectors' subcommands (registered by app.cli).
+"""`detcal train | dump | show`: the detectors' subcommands (registered by app.cli.main).
 
 Heavy imports (torch, the simulator, matplotlib) happen inside the handlers, so listing the
 commands stays fast and works without the detectors extra installed.

@@ -31,7 +31,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from detectors.data import TrainSamples, collate
 from detectors.losses import SetCriterion, Target
 from detectors.model.detector import Detector, DetectorConfig
 from detectors.registry import (
@@ -41,6 +40,7 @@ from detectors.registry import (
     save_weights,
     weights_path,
 )
+from detectors.samples import TrainSamples, collate
 from detectors.subensemble import attach_trunk, train_mode
 
 LOG_FIELDS = ("step", "lr", "loss", "heatmap", "cls", "box", "cls_last", "box_last",
@@ -70,7 +70,7 @@ class TrainConfig:
     # without the object sampling, on the world's own class frequencies.
     extra_fade: float = 0.0
     # Every simulated scene serves this many samples, each augmented anew (see
-    # detectors.data.TrainSamples: the simulation is a third of a lidar step's CPU time).
+    # detectors.samples.TrainSamples: the simulation is a third of a lidar step's CPU time).
     scene_reuse: int = 1
     # Deep sub-ensemble member: copy and freeze the trunk of this weights file, train a
     # fresh decoder head on it (detectors.subensemble). None trains the whole model.

@@ -112,7 +112,7 @@ def series_svg(series: list[dict[str, Any]], levels: Sequence[float]) -> str:
 
 
 def health_section(doc: dict[str, Any]) -> str:
-    """The HTML of a health document (`app.health_document`)."""
+    """The HTML of a health document (`app.feedback.health_document`)."""
     status = doc["status"]
     cls = {"ok": "ok", "degraded": "bad"}.get(status, "note")
     win = doc["window"]

@@ -14,7 +14,7 @@ from typing import Any
 
 import numpy as np
 
-from app.cache import LoadedProfile
+from app.calibrate.cache import LoadedProfile
 from app.dashboard.intervals import MIN_TPS, RULE, proportion_interval, too_small
 from app.store import JobRecord, NameSummary
 from calibrators import ProfileReport, Summary
@@ -198,9 +198,9 @@ class DashboardRenderer:
 
 def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) -> str:
     from app.bundled_detectors import DetectorUnavailable, detections_of
-    from app.calibration import calibrate_frames
+    from app.calibrate.documents import calibrate_frames
     from app.dashboard import plots
-    from app.errors import RequestError
+    from app.http.errors import RequestError
     from app.schemas.calibrate import FrameIn
     from calibrators.covariance import layer_spread
     from calibrators.regions import ellipse

@@ -6,11 +6,11 @@ from typing import Annotated
 
 from fastapi import APIRouter, Depends, Path
 
-from app.body import body_doc, json_body
-from app.deps import AdminIdDep, StoreDep
-from app.errors import RequestError
+from app.http.deps import AdminIdDep, StoreDep
+from app.http.errors import RequestError
+from app.http.json_body import body_doc, json_body
 from app.schemas.aliases import AliasIn, AliasList, AliasOut
-from app.schemas.common import AliasName, ErrorResponse, ProfileName
+from app.schemas.types import AliasName, ErrorResponse, ProfileName
 from app.store import CHAMPION, AliasRecord, AuditEntry
 
 router = APIRouter(prefix="/v1/profiles", tags=["profiles"])

@@ -6,9 +6,9 @@ from typing import Annotated, Literal
 
 from fastapi import APIRouter, Query
 
-from app.deps import AdminDep, StoreDep
+from app.http.deps import AdminDep, StoreDep
 from app.schemas.audit import AuditOut, AuditPage
-from app.schemas.common import ErrorResponse, ProfileName
+from app.schemas.types import ErrorResponse, ProfileName
 from app.store import AUDIT_ACTIONS
 
 router = APIRouter(prefix="/v1", tags=["audit"])

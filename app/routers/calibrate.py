@@ -7,12 +7,12 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response
 
-from app.body import body_doc, register_body_model
-from app.calibrate_calls import CalibrateCall
-from app.deps import MetricsDep, require_json
-from app.media import accept, body_media
-from app.offload import CalibrateRunner
-from app.prometheus import ServiceMetrics
+from app.calibrate.engine import CalibrateCall
+from app.calibrate.runner import CalibrateRunner
+from app.http.content_types import accept, body_media
+from app.http.deps import MetricsDep, require_json
+from app.http.json_body import body_doc, register_body_model
+from app.http.metrics import ServiceMetrics
 from app.schemas.calibrate import (
     LEVELS_SCHEMA,
     LEVELS_TEXT,
@@ -20,8 +20,8 @@ from app.schemas.calibrate import (
     CalibrateResponse,
 )
 from app.schemas.calibrate_query import CalibrateQuery
-from app.schemas.common import ErrorResponse, ProfileRefText
 from app.schemas.nuscenes import NuScenesResults
+from app.schemas.types import ErrorResponse, ProfileRefText
 from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.io.arrow_batch import ARROW_STREAM
 
@@ -59,7 +59,8 @@ async def calibrate(
     """Calibrate raw detections with the active (or a named) profile version: a JSON body
     (`CalibrateRequest`), or an Arrow IPC stream of one detection per row answered with an
     Arrow stream (columns in docs/api.md). Arrow bodies are answered by the same engine
-    below FastAPI's routing (`app.arrow_fast`); this route documents them and serves JSON."""
+    below FastAPI's routing (`app.calibrate.arrow_route`); this route documents them and
+    serves JSON."""
     body = await request.body()
     arrow = body_media(request, ARROW_STREAM) == ARROW_STREAM
     accept(request, ARROW_STREAM if arrow else "application/json")

@@ -7,7 +7,7 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import HTMLResponse
 
-from app.cache import LoadedProfile
+from app.calibrate.cache import LoadedProfile
 from app.dashboard.health_series import health_section
 from app.dashboard.page import (
     DashboardRenderer,
@@ -18,8 +18,8 @@ from app.dashboard.page import (
     uptime,
     versions_table,
 )
-from app.deps import CacheDep, MetricsDep, SettingsDep, StoreDep
-from app.health_document import health_document
+from app.feedback.health_document import health_document
+from app.http.deps import CacheDep, MetricsDep, SettingsDep, StoreDep
 from app.store import NotFoundError
 from calibrators import ProfileReport
 

@@ -7,13 +7,13 @@ from typing import Annotated
 from fastapi import APIRouter, Depends, Request
 from fastapi.responses import JSONResponse, Response
 
-from app.body import body_doc, json_body, json_response
 from app.bundled_detectors import DetectorService, DetectorUnavailable, detections_of
-from app.calibration import calibrate_frames
-from app.deps import CacheDep, MetricsDep, SettingsDep
-from app.profile_match import profile_for_sensor
+from app.calibrate.documents import calibrate_frames
+from app.calibrate.profile_match import profile_for_sensor
+from app.http.deps import CacheDep, MetricsDep, SettingsDep
+from app.http.json_body import body_doc, json_body, json_response
 from app.schemas.calibrate import DetectRequest, DetectResponse, FrameIn
-from app.schemas.common import ErrorResponse
+from app.schemas.types import ErrorResponse
 
 router = APIRouter(prefix="/v1", tags=["detect"], responses={
     code: {"model": ErrorResponse} for code in (404, 413, 415, 422, 503)})

@@ -12,17 +12,17 @@ from starlette.concurrency import run_in_threadpool
 from starlette.datastructures import UploadFile
 from starlette.exceptions import HTTPException
 
-from app.body import json_response, parse_json, register_body_model
-from app.cache import LoadedProfile
-from app.deps import CacheDep, FeedbackIdDep, RunnerDep, SettingsDep, StoreDep
-from app.errors import RequestError
-from app.feedback import frames_dump, record_feedback
-from app.refit import keep_feedback, queue_refit
-from app.schemas.common import ErrorResponse, ProfileRefText
+from app.calibrate.cache import LoadedProfile
+from app.feedback.evidence import frames_dump, record_feedback
+from app.fitting.refit import keep_feedback, queue_refit
+from app.fitting.uploads import check_declared, declared_npz, load_upload
+from app.http.deps import CacheDep, FeedbackIdDep, RunnerDep, SettingsDep, StoreDep
+from app.http.errors import RequestError
+from app.http.json_body import json_response, parse_json, register_body_model
 from app.schemas.feedback import FeedbackRequest, FeedbackResult
+from app.schemas.types import ErrorResponse, ProfileRefText
 from app.settings import Settings
 from app.store import AuditEntry, Store
-from app.uploads import check_declared, declared_npz, load_upload
 from calibrators.data import Dump
 
 router = APIRouter(prefix="/v1", tags=["feedback"])

@@ -10,14 +10,14 @@ from typing import Annotated, Any
 from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import JSONResponse
 
-from app.datasets import DATASET_KIND, dataset_reference, open_dataset
-from app.deps import AdminIdDep, RunnerDep, SettingsDep, StoreDep
-from app.errors import RequestError
-from app.schemas.common import ErrorResponse, ProfileName
+from app.fitting.datasets import DATASET_KIND, dataset_reference, open_dataset
+from app.fitting.uploads import check_declared, declared_npz, load_upload
+from app.http.deps import AdminIdDep, RunnerDep, SettingsDep, StoreDep
+from app.http.errors import RequestError
 from app.schemas.fit import FitForm
 from app.schemas.profiles import FitAccepted
+from app.schemas.types import ErrorResponse, ProfileName
 from app.store import AuditEntry, DumpRecord, Store
-from app.uploads import check_declared, declared_npz, load_upload
 from calibrators.core.errors import OptionError
 from calibrators.fit import FitOptions, check_fit_input
 

@@ -10,9 +10,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path, Query
 
-from app.deps import FeedbackIdDep, StoreDep
-from app.schemas.common import ErrorResponse, ProfileRef
+from app.http.deps import FeedbackIdDep, StoreDep
 from app.schemas.profiles import JobOut
+from app.schemas.types import ErrorResponse, ProfileRef
 from app.store import JobRecord, Store
 
 router = APIRouter(prefix="/v1/jobs", tags=["fit"])

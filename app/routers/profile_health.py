@@ -6,11 +6,11 @@ from typing import Annotated
 
 from fastapi import APIRouter, Query
 
-from app.deps import CacheDep, SettingsDep, StoreDep
-from app.errors import RequestError
-from app.health_document import health_document
-from app.schemas.common import ALIAS_PATTERN, ErrorResponse, ProfileName, Version
+from app.feedback.health_document import health_document
+from app.http.deps import CacheDep, SettingsDep, StoreDep
+from app.http.errors import RequestError
 from app.schemas.profile_health import HealthDocument
+from app.schemas.types import ALIAS_PATTERN, ErrorResponse, ProfileName, Version
 
 router = APIRouter(prefix="/v1/profiles", tags=["health"])
 

@@ -7,9 +7,9 @@ from typing import Annotated
 
 from fastapi import APIRouter, Path
 
-from app.deps import AdminIdDep, StoreDep
-from app.schemas.common import ErrorResponse, ProfileName, Version
+from app.http.deps import AdminIdDep, StoreDep
 from app.schemas.profiles import ProfileDetail, ProfileSummary, ProfileVersions, VersionSummary
+from app.schemas.types import ErrorResponse, ProfileName, Version
 from app.store import AuditEntry, ProfileRecord
 
 router = APIRouter(prefix="/v1/profiles", tags=["profiles"])

@@ -6,7 +6,7 @@ from datetime import datetime
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.schemas.common import Version
+from app.schemas.types import Version
 
 
 class AliasIn(BaseModel):

@@ -15,7 +15,7 @@ from pydantic import (
     model_validator,
 )
 
-from app.schemas.common import Finite, Probability, ProfileRef, ProfileRefText
+from app.schemas.types import Finite, Probability, ProfileRef, ProfileRefText
 from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.core.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
 from calibrators.regions import MAX_LEVELS

@@ -1,12 +1,12 @@
 """Query parameters of POST /v1/calibrate, one model for the FastAPI route (OpenAPI) and for
-the Arrow fast path (`app.arrow_fast`), so both validate them by the same rules."""
+the Arrow fast path (`app.calibrate.arrow_route`), so both validate them by the same rules."""
 
 from __future__ import annotations
 
 from pydantic import BaseModel, Field
 
 from app.schemas.calibrate import LEVELS_SCHEMA, LEVELS_TEXT
-from app.schemas.common import ProfileRefText
+from app.schemas.types import ProfileRefText
 from calibrators.core.defaults import ELLIPSE_CONFIDENCE
 
 _FOR_ARROW = "For Arrow bodies; a JSON body's own field of the same name takes precedence."

@@ -7,7 +7,7 @@ from typing import Annotated, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from app.schemas.calibrate import FrameIn, Row
-from app.schemas.common import ProfileRef, ProfileRefText
+from app.schemas.types import ProfileRef, ProfileRefText
 from calibrators.core.vocab import BOX_FIELDS, BOX_INDEX
 
 _BOX_WIDTHS = (len(BOX_FIELDS), BOX_INDEX["vx"])

@@ -11,7 +11,7 @@ from typing import Annotated
 from pydantic import BaseModel, ConfigDict, Field
 
 from app.schemas.calibrate import Covariance
-from app.schemas.common import Finite, FiniteJson, Probability
+from app.schemas.types import Finite, FiniteJson, Probability
 
 Vec3 = Annotated[list[Finite], Field(min_length=3, max_length=3)]
 

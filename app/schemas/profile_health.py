@@ -6,8 +6,8 @@ from datetime import datetime
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from app.schemas.common import ProfileRef
 from app.schemas.feedback import HealthStatus
+from app.schemas.types import ProfileRef
 
 
 class Bounded(BaseModel):

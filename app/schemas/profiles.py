@@ -7,7 +7,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
-from app.schemas.common import ProfileRef
+from app.schemas.types import ProfileRef
 from app.store.records import JobFields
 
 

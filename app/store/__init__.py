@@ -2,7 +2,7 @@
 
 from app.store.aliases import CHAMPION, AliasRecord
 from app.store.audit import AUDIT_ACTIONS, AuditEntry, AuditRecord
-from app.store.health import HealthChunk, HealthOverview, HealthRecord
+from app.store.feedback_health import HealthChunk, HealthOverview, HealthRecord
 from app.store.records import (
     CleanReport,
     DumpRecord,

@@ -15,8 +15,8 @@ from sqlalchemy import select
 from sqlalchemy.orm import Session
 
 from app.store.audit import AuditEntry
+from app.store.base import StorePart, version_row
 from app.store.models import ActiveRow, AliasRow, utcnow
-from app.store.parts import StorePart, version_row
 from app.store.records import NotFoundError, ProfileRecord, aware
 
 log = logging.getLogger("detcal.store")

@@ -13,7 +13,7 @@ with `activate` remembers the active pointer it saw and, when it lands, moves th
 only if nobody moved it since (compare-and-set in the landing transaction). Uploaded dumps
 and their clean-up: app/store/dumps.py; fit jobs: app/store/jobs.py; private file modes:
 app/store/files.py; aliases: app/store/aliases.py; the audit log of writes:
-app/store/audit.py; feedback health: app/store/health.py.
+app/store/audit.py; feedback health: app/store/feedback_health.py.
 """
 
 from __future__ import annotations
@@ -39,10 +39,11 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from app.store.aliases import AliasStore
 from app.store.audit import AuditEntry, AuditLog
+from app.store.base import version_row
 from app.store.changes import CommitMarker
 from app.store.dumps import DumpFiles
+from app.store.feedback_health import HealthStore
 from app.store.files import private_dir, private_sqlite
-from app.store.health import HealthStore
 from app.store.jobs import JobQueue
 from app.store.models import (
     ActiveRow,
@@ -51,7 +52,6 @@ from app.store.models import (
     add_missing_columns,
     utcnow,
 )
-from app.store.parts import version_row
 from app.store.records import (
     NameSummary,
     NotFoundError,

@@ -17,7 +17,7 @@ Detections taking part: raw final-layer score >= `min_score` (0.3 by default; mo
 - per decoder layer (Fig. 5).
 
 `box_errors` says what sets a kept box's IoU: its centre, yaw, length and width errors
-against that closest ground truth (`detectors.report.v2_why` sets them beside AS).
+against that closest ground truth (`detectors.report.iou_bins` sets them beside AS).
 
 `Binned` holds one statistic: labels [B] str, n [B], p25 / median / p75 [B] (NaN if empty),
 collapsed [B] share of rank-deficient queries (NaN if empty).

@@ -1,5 +1,5 @@
 """`detcal report`: the thesis-style calibration report of the bundled detectors (and the
-`report-v2` subcommand of `cli_v2`, registered here).
+`report-v2` subcommand of `cli_unified_vs_group`, registered here).
 
     detcal report --sensor lidar [--sensor radar5 ...] [--val-frames N] [--test-frames N]
                   [--mcd 2 4 6] [--out docs/report/] [--cache runs/report_cache]
@@ -46,9 +46,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                    help="torch CPU threads (default: %(default)s)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run_report)
-    from detectors.report import cli_v2
+    from detectors.report import cli_unified_vs_group
 
-    cli_v2.register(subparsers)
+    cli_unified_vs_group.register(subparsers)
 
 
 def _positive(text: str) -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from app.deps import token_id
+from app.http.deps import token_id
 from tests.app.conftest import ADMIN, TOKEN
 
 AL = "/v1/profiles/lidar/aliases"

@@ -1,5 +1,5 @@
-"""The Arrow fast path (`app.arrow_fast`) answers like the documented FastAPI route: the same
-query validation (same 422 bodies as a JSON request with that query), the same negotiation,
+"""The Arrow fast path (`app.calibrate.arrow_route`) answers like the documented FastAPI route:
+the same query validation (same 422 bodies as a JSON request with that query), the same negotiation,
 the same size limit, and the same metrics (route label, detection counter)."""
 
 from __future__ import annotations
@@ -27,7 +27,7 @@ def routed(seeded):
     """A client of the same app without the fast path: Arrow bodies go through the route."""
     from fastapi.testclient import TestClient
 
-    from app.arrow_fast import ArrowCalibrateMiddleware
+    from app.calibrate.arrow_route import ArrowCalibrateMiddleware
     from app.main import create_app
 
     app = create_app(seeded)

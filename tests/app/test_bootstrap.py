@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import stat
 
-from app.bootstrap import ensure_admin_token, ensure_default_profile, shipped_dump
+from app.fitting.bootstrap import ensure_admin_token, ensure_default_profile, shipped_dump
 from app.settings import Settings
 from app.store import Store
 from calibrators.profile import CalibrationProfile

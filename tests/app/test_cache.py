@@ -3,7 +3,7 @@ connection (another worker process), though it reads the active pointer only aft
 
 from __future__ import annotations
 
-from app.cache import ProfileCache
+from app.calibrate.cache import ProfileCache
 from app.settings import Settings
 from app.store import Store
 

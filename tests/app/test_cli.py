@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from app.cli import main
+from app.cli.main import main
 from calibrators.data import synthetic_dump
 from calibrators.io import save_dump
 from calibrators.profile import CalibrationProfile

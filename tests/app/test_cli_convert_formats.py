@@ -7,7 +7,7 @@ import pickle
 
 import numpy as np
 
-from app.cli import main
+from app.cli.main import main
 from calibrators.io import load_dump, load_parquet
 
 

@@ -85,8 +85,8 @@ def test_cmd_is_detcal_serve_with_existing_options():
     cmd = json.loads(next(rest for op, rest in _instructions() if op == "CMD"))
     assert cmd[:2] == ["detcal", "serve"]
     project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
-    assert project["scripts"]["detcal"] == "app.cli:main"
-    from app.cli import build_parser
+    assert project["scripts"]["detcal"] == "app.cli.main:main"
+    from app.cli.main import build_parser
 
     parser = build_parser()
     args = parser.parse_args(cmd[1:])

@@ -6,7 +6,7 @@ import pytest
 from fastapi.testclient import TestClient
 from pydantic import SecretStr
 
-from app.deps import token_id
+from app.http.deps import token_id
 from app.main import create_app
 from calibrators import CalibrationProfile, summarize
 from calibrators.data import DEFAULT_DEPTH_K, synthetic_dump

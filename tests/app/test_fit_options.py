@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from app.cli_calib import add_fit_options, fit_options_of
+from app.cli.offline import add_fit_options, fit_options_of
 from app.main import create_app
 from calibrators import FitOptions
 from tests.app.conftest import ADMIN

@@ -10,16 +10,16 @@ import pytest
 from prometheus_client.parser import text_string_to_metric_families
 from pydantic import TypeAdapter
 
-from app.deps import AdminBeforeBodyMiddleware
-from app.prometheus import METHODS
-from app.routers import calibrate, dashboard, detect, fit, health, jobs, metrics, profiles
+from app.http.deps import AdminBeforeBodyMiddleware
+from app.http.metrics import METHODS
+from app.routers import calibrate, dashboard, detect, fit, jobs, liveness, metrics, profiles
 from app.schemas.calibrate import CalibrateRequest, DetectRequest
 from app.schemas.nuscenes import NuScenesResults
 from tests.app.conftest import ADMIN
 
 JSON = {"Content-Type": "application/json"}
 HUGE = "9223372036854775808"          # 2^63: beyond every integer column
-ROUTERS = (health, metrics, calibrate, fit, jobs, profiles, detect, dashboard)
+ROUTERS = (liveness, metrics, calibrate, fit, jobs, profiles, detect, dashboard)
 
 
 def _locs(r) -> list[list]:

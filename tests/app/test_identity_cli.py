@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from app.cli import main
+from app.cli.main import main
 from calibrators import apply_profile
 from calibrators.io import save_dump, save_nuscenes, save_parquet
 from calibrators.profile import CalibrationProfile

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 
-from app.cli import main
+from app.cli.main import main
 from calibrators import apply_profile
 from calibrators.profile import CalibrationProfile
 from tests.identity_cases import CASES, awkward, shuffled

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from app.jobs import RUNNERS_DIR, JobRunner
+from app.fitting.runner import RUNNERS_DIR, JobRunner
 from app.main import create_app
 from app.settings import Settings
 from app.store import Store
@@ -28,7 +28,7 @@ ROOT = Path(__file__).resolve().parents[2]
 # (no fit threads: it stands for a process busy fitting), until it is killed.
 SIBLING = """
 import sys, time
-from app.jobs import JobRunner
+from app.fitting.runner import JobRunner
 from app.store import Store
 store = Store(sys.argv[1], sys.argv[2])
 runner = JobRunner(store, workers=0)

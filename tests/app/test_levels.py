@@ -17,7 +17,7 @@ import pytest
 from fastapi.testclient import TestClient
 from pydantic import TypeAdapter
 
-from app.cli import main
+from app.cli.main import main
 from app.main import create_app
 from app.schemas.calibrate import CalibrateResponse
 from app.settings import Settings

@@ -1,4 +1,4 @@
-"""Issue 25, item 7: `app.logs.log_config` sends the detcal.* loggers to stderr with levels,
+"""Issue 25, item 7: `app.http.logs.log_config` sends the detcal.* loggers to stderr with levels,
 as text or JSON lines, and a configured token never reaches the log (run in a fresh
 interpreter: the configuration is process-wide)."""
 
@@ -17,7 +17,7 @@ SECRET = "s3cret-admin-token-for-the-log-test"
 
 SCRIPT = """
 import logging, logging.config, sys
-from app.logs import log_config
+from app.http.logs import log_config
 logging.config.dictConfig(log_config(sys.argv[1], sys.argv[2]))
 log = logging.getLogger("detcal.jobs")
 log.debug("a debug line")

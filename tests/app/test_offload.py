@@ -1,4 +1,4 @@
-"""Large calibrate bodies run in a worker process (app.offload) and answer exactly what the
+"""Large calibrate bodies run in a worker process (app.calibrate.runner) and answer exactly what the
 in-process path answers: the same bytes for successes and for every kind of error; a worker
 that dies fails its request with a 503 and the next request is served by a new worker."""
 
@@ -109,7 +109,7 @@ def test_small_bodies_stay_in_the_server_process(client, dump_given, detection) 
 def test_dumps_json_is_strict_for_huge_integers_numpy_and_non_finite() -> None:
     import numpy as np
 
-    from app.body import dumps_json
+    from app.http.json_body import dumps_json
 
     out = dumps_json({"n": 10**30, "a": np.arange(2.0), "s": np.float32(2.5),
                       "x": float("inf")})

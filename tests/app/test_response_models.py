@@ -33,9 +33,9 @@ from fastapi.testclient import TestClient
 from pydantic import TypeAdapter
 
 from app.bundled_detectors import DetectorService
-from app.jobs import JobRunner
+from app.fitting.runner import JobRunner
 from app.main import create_app
-from app.schemas.common import ErrorResponse
+from app.schemas.types import ErrorResponse
 from app.settings import Settings
 from app.store import Store
 from tests.app.conftest import ADMIN, TOKEN

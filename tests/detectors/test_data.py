@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from detectors.data import TrainSamples
+from detectors.samples import TrainSamples
 from detectors.sim import SPLITS
 
 SEEDS = SPLITS["train"][:50]

@@ -84,7 +84,7 @@ def test_bad_cov_source_is_refused(model: Detector) -> None:
 
 
 def test_shipped_bootstrap_dump_is_a_valid_lidar_dump():
-    """`make run` fits its default profile from this file (app/bootstrap.py)."""
+    """`make run` fits its default profile from this file (app/fitting/bootstrap.py)."""
     from pathlib import Path
 
     import detectors

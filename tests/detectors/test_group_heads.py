@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from detectors.data import TrainSamples, frame_sample
 from detectors.losses import HungarianMatcher, SetCriterion, Target
 from detectors.model import Detector, DetectorConfig, encode_boxes
 from detectors.model.groups import DEFAULT_GROUPS, class_groups, group_scores
+from detectors.samples import TrainSamples, frame_sample
 from detectors.sim import CLASSES, SPLITS, make_frame
 from detectors.train import TrainConfig
 

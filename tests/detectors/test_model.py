@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 import torch
 
-from detectors.data import augment, frame_sample
 from detectors.losses import HungarianMatcher, SetCriterion, Target, heatmap_target
 from detectors.model import Detector, decode_boxes, encode_boxes
+from detectors.samples import augment, frame_sample
 from detectors.sim import CLASSES, FEATURES, make_frame
 
 

@@ -36,7 +36,7 @@ def report_run(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, Path]:
         pytest.skip("shipped lidar weights missing")
     import torch
 
-    from app.cli import main
+    from app.cli.main import main
 
     root = tmp_path_factory.mktemp("report")
     out, cache = root / "out", root / "cache"

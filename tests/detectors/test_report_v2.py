@@ -20,6 +20,7 @@ from calibrators.covariance import hypotheses_covariance
 from detectors.model import Detector
 from detectors.registry import load_weights, save_weights
 from detectors.report.attention import AttentionStats, Binned, binned
+from detectors.report.covariance_sources import SourceRows, SourceSkip, source_rows, source_table
 from detectors.report.groups import (
     LayerTrend,
     class_switches,
@@ -28,12 +29,11 @@ from detectors.report.groups import (
     per_layer,
     trend_interval,
 )
+from detectors.report.iou_bins import error_bins_table, error_rho_table, error_rhos, why_sentence
 from detectors.report.sensor import report_base
 from detectors.report.tables import number
-from detectors.report.v2 import V2Options, V2Runs, measure_v2, v2_page
-from detectors.report.v2_cov import SourceRows, SourceSkip, source_rows, source_table
-from detectors.report.v2_tables import _interval, kept_queries, trend_verdict
-from detectors.report.v2_why import error_bins_table, error_rho_table, error_rhos, why_sentence
+from detectors.report.unified_vs_group import V2Options, V2Runs, measure_v2, v2_page
+from detectors.report.unified_vs_group_tables import _interval, kept_queries, trend_verdict
 from detectors.sim import SPLITS
 
 N_TEST, N_VAL = 2, 2
@@ -71,7 +71,7 @@ def test_header_names_weights_scenes_and_command(report: tuple) -> None:
 
 
 def test_ap_table_is_detcal_dump_plus_evaluate(report: tuple, tmp_path: Path) -> None:
-    from app.cli import main
+    from app.cli.main import main
 
     runs, _, page = report
     out = tmp_path / "test.npz"
@@ -195,7 +195,7 @@ def test_a_dump_without_hypotheses_skips_that_source(report: tuple) -> None:
 
 
 def test_cli_registers_report_v2() -> None:
-    from app.cli import build_parser
+    from app.cli.main import build_parser
 
     args = build_parser().parse_args(["report-v2", "--weights", "g.pt", "--baseline", "b.pt",
                                       "--test-frames", "3", "--threads", "1"])

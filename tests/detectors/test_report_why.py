@@ -1,4 +1,4 @@
-"""What separates the IoU bins (detectors.report.v2_why) and the box errors behind them
+"""What separates the IoU bins (detectors.report.iou_bins) and the box errors behind them
 (detectors.report.attention.box_errors)."""
 
 from __future__ import annotations
@@ -14,12 +14,7 @@ from detectors.report.attention import (
     closest_gt_index,
     closest_gt_iou,
 )
-from detectors.report.v2_why import (
-    error_bins_table,
-    error_rho_table,
-    error_rhos,
-    why_sentence,
-)
+from detectors.report.iou_bins import error_bins_table, error_rho_table, error_rhos, why_sentence
 
 CAR = [2.0, 4.5, 1.6]   # w l h
 

@@ -11,7 +11,7 @@ import torch
 
 from detectors.model import Detector
 from detectors.registry import load_weights, save_weights
-from detectors.report.v2_window import probe_table, probe_windows
+from detectors.report.window_probe import probe_table, probe_windows
 from detectors.sim import split_seeds
 
 

@@ -26,7 +26,7 @@ def _detcal() -> list[str]:
     exe = ROOT / ".venv" / "bin" / "detcal"
     if exe.exists():
         return [str(exe)]
-    return [sys.executable, "-m", "app.cli"]
+    return [sys.executable, "-m", "app.cli.main"]
 
 
 def free_port() -> int:

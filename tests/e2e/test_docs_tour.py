@@ -536,7 +536,7 @@ def test_openapi_examples_are_served(fresh: BootstrapServer, client):
     spec = client.get("/openapi.json").json()
     if len(client.get("/v1/profiles/lidar").json()["versions"]) < 2:
         # The examples name lidar@2; the tour above fits it (this test alone: fit it here).
-        from app.bootstrap import shipped_dump
+        from app.fitting.bootstrap import shipped_dump
 
         dump = shipped_dump("lidar")
         assert dump is not None, "the shipped lidar dump is missing"

@@ -1,0 +1,97 @@
+"""In-memory cache of parsed profiles; stored versions are immutable, so a version never goes stale.
+
+The active *pointer* (alias `champion`) and every other alias are read from the store, so an
+activation or alias move by another worker process or a finished fit is seen by the next
+request. Aliases are read on every lookup (one indexed read); active versions are kept until
+the store's commit marker moves (SQLite: any commit by anyone, `app.store.changes`), and read
+on every lookup where the store has no marker (Postgres).
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+
+from app.http.errors import RequestError
+from app.schemas.types import parse_profile_ref
+from app.store import NotFoundError, ProfileRecord, Store
+from calibrators.profile import CalibrationProfile
+
+
+@dataclass(frozen=True)
+class LoadedProfile:
+    """A stored profile version and its parsed CalibrationProfile."""
+
+    record: ProfileRecord
+    profile: CalibrationProfile
+
+    def ref(self) -> dict[str, object]:
+        """The `ProfileRef` body of responses."""
+        r = self.record
+        return {"id": r.ref, "name": r.name, "version": r.version, "sha256": r.sha256}
+
+
+class ProfileCache:
+    """Parsed profiles keyed by `(name, version)`, resolved against the store's active pointer."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self._cache: dict[tuple[str, int], LoadedProfile] = {}
+        self._lock = threading.Lock()
+        self._active: dict[str, int | None] = {}   # active versions read at `_marker`
+        self._marker: int | None = None
+
+    def load_active(self) -> list[LoadedProfile]:
+        """Parse and cache the active version of every name (at start-up)."""
+        loaded = []
+        for name, version in self.store.active_versions().items():
+            loaded.append(self._version(name, version))
+        return loaded
+
+    def cached(self) -> list[LoadedProfile]:
+        """Everything parsed so far."""
+        with self._lock:
+            return list(self._cache.values())
+
+    def resolve(self, ref: str | None, default: str, loc: tuple[str, ...] = ("body", "profile")
+                ) -> LoadedProfile:
+        """The profile for `name` (active version), `name@version` or `name@alias`; 404 if
+        unknown, 422 naming `loc` if `ref` is not a name or its version or alias is malformed."""
+        try:
+            name, number, alias = parse_profile_ref(default if ref is None else ref)
+        except ValueError as exc:
+            raise RequestError(list(loc), str(exc)) from None
+        if number is not None:
+            return self._version(name, number)
+        if alias is not None:
+            return self._version(name, self.store.alias_version(name, alias))
+        version = self._active_version(name)
+        if version is None:
+            raise NotFoundError(f"profile {name!r} does not exist")
+        return self._version(name, version)
+
+    def _active_version(self, name: str) -> int | None:
+        """The store's active version of `name`, read again only after a commit."""
+        marker = self.store.commit_marker()   # read first: a commit after it is seen next time
+        with self._lock:
+            if marker is not None and marker == self._marker and name in self._active:
+                return self._active[name]
+        version = self.store.active_version(name)
+        if marker is not None:
+            with self._lock:
+                if marker != self._marker:
+                    self._active, self._marker = {}, marker
+                self._active[name] = version
+        return version
+
+    def _version(self, name: str, version: int) -> LoadedProfile:
+        key = (name, version)
+        with self._lock:
+            hit = self._cache.get(key)
+        if hit is not None:
+            return hit
+        record = self.store.get(name, version)
+        loaded = LoadedProfile(record, CalibrationProfile.from_json(record.json))
+        with self._lock:
+            self._cache[key] = loaded
+        return loaded
