@@ -43,7 +43,7 @@ from app.routers import (
 )
 from app.settings import Settings, get_settings
 from app.store import Store
-from calibrators.core.vocab import detcal_version
+from calibrators.core.version import detcal_version
 
 log = logging.getLogger("detcal.app")
 

@@ -30,7 +30,7 @@ class CliError(Exception):
 
 def build_parser() -> argparse.ArgumentParser:
     """The `detcal` parser with every subcommand whose module imports."""
-    from calibrators.core.vocab import detcal_version
+    from calibrators.core.version import detcal_version
 
     parser = argparse.ArgumentParser(
         prog="detcal",

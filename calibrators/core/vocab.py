@@ -1,6 +1,6 @@
 """The library's vocabulary, defined once: box fields, covariance sources, score modes,
-angle wrapping, quaternion yaw and the installed version (JSON-safe values:
-`calibrators.core.json_safe`).
+and angle wrapping (JSON-safe values: `calibrators.core.json_safe`; the installed version:
+`calibrators.core.version`).
 
 Every other module (and `detectors/`, `app/`) imports these names instead of spelling them
 again.
@@ -8,7 +8,6 @@ again.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
 
 import numpy as np
@@ -61,22 +60,5 @@ def wrap_angle(angle: np.ndarray | float) -> np.ndarray:
     return np.pi - np.mod(np.pi - np.asarray(angle, dtype=np.float64), 2.0 * np.pi)
 
 
-def quaternion_yaw(w: float, x: float, y: float, z: float) -> float:
-    """Yaw about +z of the rotation quaternion (w, x, y, z), as the nuScenes devkit's
-    `quaternion_yaw`; a non-unit quaternion gives the yaw of its normalised rotation.
-
-    Raises ValueError for the zero quaternion (no rotation is defined).
-    """
-    if w * w + x * x + y * y + z * z == 0:
-        raise ValueError("rotation is the zero quaternion")
-    return float(math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z))
 
 
-def detcal_version() -> str:
-    """The installed detcal distribution's version, `"unknown"` when run from a bare tree."""
-    from importlib.metadata import PackageNotFoundError, version
-
-    try:
-        return version("detcal")
-    except PackageNotFoundError:
-        return "unknown"

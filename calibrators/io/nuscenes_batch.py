@@ -24,7 +24,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibrators.core.errors import FieldError
-from calibrators.core.vocab import quaternion_yaw
+from calibrators.io.nuscenes import quaternion_yaw
 from calibrators.profile import Detections, calibrated_records, detections_from_records
 
 if TYPE_CHECKING:

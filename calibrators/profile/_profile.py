@@ -24,7 +24,8 @@ import numpy as np
 
 import calibrators.profile._serialise as pf
 from calibrators.core.defaults import ELLIPSE_CONFIDENCE
-from calibrators.core.vocab import COV_SOURCES, SCORE_MODES, detcal_version
+from calibrators.core.version import detcal_version
+from calibrators.core.vocab import COV_SOURCES, SCORE_MODES
 from calibrators.covariance import dim_indices
 from calibrators.profile._calibrate import CalibratedDetections, calibrate_detections
 

@@ -37,7 +37,8 @@ import torch
 from torch import Tensor, nn
 
 from calibrators.core.defaults import DEFAULT_LEVELS
-from calibrators.core.vocab import BOX_INDEX, detcal_version
+from calibrators.core.version import detcal_version
+from calibrators.core.vocab import BOX_INDEX
 from calibrators.profile import CalibrationProfile, SourceStage, score_stage, source_stage
 from calibrators.regions import check_levels, chi2_2_quantile
 from detectors.export.regions import (
