@@ -10,7 +10,7 @@ on every lookup where the store has no marker (Postgres).
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 from app.http.errors import RequestError
 from app.schemas.types import parse_profile_ref
@@ -20,15 +20,21 @@ from calibrators.profile import CalibrationProfile
 
 @dataclass(frozen=True)
 class LoadedProfile:
-    """A stored profile version and its parsed CalibrationProfile."""
+    """A stored profile version, its parsed CalibrationProfile and the `ProfileRef` body of
+    responses (built once: a calibrate response names its profile on every request)."""
 
     record: ProfileRecord
     profile: CalibrationProfile
+    ref_body: dict[str, object] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        r = self.record
+        object.__setattr__(self, "ref_body", {"id": r.ref, "name": r.name,
+                                              "version": r.version, "sha256": r.sha256})
 
     def ref(self) -> dict[str, object]:
-        """The `ProfileRef` body of responses."""
-        r = self.record
-        return {"id": r.ref, "name": r.name, "version": r.version, "sha256": r.sha256}
+        """The `ProfileRef` body of responses (a copy: callers may add to it)."""
+        return dict(self.ref_body)
 
 
 class ProfileCache:
@@ -40,6 +46,7 @@ class ProfileCache:
         self._lock = threading.Lock()
         self._active: dict[str, int | None] = {}   # active versions read at `_marker`
         self._marker: int | None = None
+        self._changes = store.change_marker()   # None: read the active version every time
 
     def load_active(self) -> list[LoadedProfile]:
         """Parse and cache the active version of every name (at start-up)."""
@@ -72,7 +79,8 @@ class ProfileCache:
 
     def _active_version(self, name: str) -> int | None:
         """The store's active version of `name`, read again only after a commit."""
-        marker = self.store.commit_marker()   # read first: a commit after it is seen next time
+        # read first: a commit after it is seen next time
+        marker = None if self._changes is None else self._changes.value()
         with self._lock:
             if marker is not None and marker == self._marker and name in self._active:
                 return self._active[name]

@@ -158,3 +158,26 @@ def calibrate_results(loaded: LoadedProfile, doc: NuScenesResults, confidence: f
                               body.get("meta"))
     rest = {k: v for k, v in body.items() if k not in ("meta", "results")}
     return {**rest, **out}, len(flat)
+
+
+def check_classes(loaded: LoadedProfile, classes: Sequence[str] | None) -> None:
+    """A 422 at `body.classes` when the client's class list (its logits' column order) is not
+    the profile's: the columns would be read as other classes."""
+    if classes is None:
+        return
+    want = list(loaded.profile.classes)
+    got = list(classes)
+    if got == want:
+        return
+    missing = [c for c in want if c not in got]
+    extra = [c for c in got if c not in want]
+    if missing or extra:
+        why = "; ".join(part for part in (
+            f"missing {', '.join(missing)}" if missing else "",
+            f"not in the profile: {', '.join(extra)}" if extra else "") if part)
+    else:
+        first = next(i for i, (a, b) in enumerate(zip(got, want, strict=True)) if a != b)
+        why = (f"same classes in another order (column {first} is {got[first]!r}, the profile's "
+               f"is {want[first]!r})")
+    raise RequestError(["body", "classes"], f"classes do not match profile "
+                                            f"{loaded.record.ref} ({', '.join(want)}): {why}")

@@ -21,8 +21,7 @@ import pyarrow as pa
 from fastapi.exceptions import RequestValidationError
 
 from app.calibrate.cache import ProfileCache
-from app.calibrate.documents import calibrate_frames, calibrate_results
-from app.calibrate.profile_match import check_classes
+from app.calibrate.documents import calibrate_frames, calibrate_results, check_classes
 from app.http.errors import RequestError, error_body
 from app.http.json_body import dumps_json, parse_json
 from app.schemas.calibrate import CalibrateRequest

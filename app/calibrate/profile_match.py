@@ -1,10 +1,8 @@
-"""Does a request fit the profile that serves it? A detect request's sensor and a calibrate
-request's class list are compared with the profile: what cannot be served is a 422 naming the
-field, what can but may be wrong is served with a warning saying so."""
+"""Does a detect request fit the profile that serves it? Its sensor is compared with the
+profile's name: a profile of another sensor is served with a warning saying so (a calibrate
+request's class list is checked in `app.calibrate.documents.check_classes`)."""
 
 from __future__ import annotations
-
-from collections.abc import Sequence
 
 from app.calibrate.cache import LoadedProfile, ProfileCache
 from app.http.errors import RequestError
@@ -38,24 +36,3 @@ def profile_for_sensor(cache: ProfileCache, ref: str | None, sensor: str, defaul
     return loaded, []
 
 
-def check_classes(loaded: LoadedProfile, classes: Sequence[str] | None) -> None:
-    """A 422 at `body.classes` when the client's class list (its logits' column order) is not
-    the profile's: the columns would be read as other classes."""
-    if classes is None:
-        return
-    want = list(loaded.profile.classes)
-    got = list(classes)
-    if got == want:
-        return
-    missing = [c for c in want if c not in got]
-    extra = [c for c in got if c not in want]
-    if missing or extra:
-        why = "; ".join(part for part in (
-            f"missing {', '.join(missing)}" if missing else "",
-            f"not in the profile: {', '.join(extra)}" if extra else "") if part)
-    else:
-        first = next(i for i, (a, b) in enumerate(zip(got, want, strict=True)) if a != b)
-        why = (f"same classes in another order (column {first} is {got[first]!r}, the profile's "
-               f"is {want[first]!r})")
-    raise RequestError(["body", "classes"], f"classes do not match profile "
-                                            f"{loaded.record.ref} ({', '.join(want)}): {why}")

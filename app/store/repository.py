@@ -112,6 +112,11 @@ class Store(AuditLog, AliasStore, DumpFiles, JobQueue, HealthStore):
         self._marker = (CommitMarker(Path(parsed.database)) if is_sqlite and parsed.database
                         and parsed.database != ":memory:" else None)
 
+    def change_marker(self) -> CommitMarker | None:
+        """The SQLite database's commit marker (`CommitMarker.value()` changes whenever anything
+        is committed), or None where the backend offers none (Postgres)."""
+        return self._marker
+
     def commit_marker(self) -> int | None:
         """A number that changes whenever anything is committed to the database (SQLite,
         `app.store.changes`), or None where the backend offers none (Postgres): callers

@@ -12,7 +12,6 @@ docs/formats.md has the full description and the conventions.
 from __future__ import annotations
 
 import json
-import math
 import os
 import re
 import reprlib
@@ -25,6 +24,7 @@ from scipy.special import logit
 from calibrators.core.checks import as_float_array, check_probabilities
 from calibrators.core.vocab import SCORE_MODES
 from calibrators.data import Dump
+from calibrators.io.nuscenes_batch import quaternion_yaw
 from calibrators.scores import probability_logit
 
 if TYPE_CHECKING:
@@ -335,12 +335,3 @@ def _covariances(det: dict, d: int) -> np.ndarray | None:
 # -- writing ----------------------------------------------------------------------------------
 
 
-def quaternion_yaw(w: float, x: float, y: float, z: float) -> float:
-    """Yaw about +z of the rotation quaternion (w, x, y, z), as the nuScenes devkit's
-    `quaternion_yaw`; a non-unit quaternion gives the yaw of its normalised rotation.
-
-    Raises ValueError for the zero quaternion (no rotation is defined).
-    """
-    if w * w + x * x + y * y + z * z == 0:
-        raise ValueError("rotation is the zero quaternion")
-    return float(math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z))

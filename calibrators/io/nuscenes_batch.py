@@ -18,13 +18,13 @@ identity: `detection_row` and, when the input had one, `detection_id`.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from calibrators.core.errors import FieldError
-from calibrators.io.nuscenes import quaternion_yaw
 from calibrators.profile import Detections, calibrated_records, detections_from_records
 
 if TYPE_CHECKING:
@@ -157,3 +157,14 @@ def devkit_box(row: np.ndarray, token: str, ego: np.ndarray, name: str, score: f
         "detection_score": score,
         "attribute_name": "",
     }
+
+
+def quaternion_yaw(w: float, x: float, y: float, z: float) -> float:
+    """Yaw about +z of the rotation quaternion (w, x, y, z), as the nuScenes devkit's
+    `quaternion_yaw`; a non-unit quaternion gives the yaw of its normalised rotation.
+
+    Raises ValueError for the zero quaternion (no rotation is defined).
+    """
+    if w * w + x * x + y * y + z * z == 0:
+        raise ValueError("rotation is the zero quaternion")
+    return float(math.atan2(2.0 * (w * z + x * y), w * w + x * x - y * y - z * z))

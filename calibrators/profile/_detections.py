@@ -56,11 +56,11 @@ from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
 from calibrators.core.vocab import BOX_FIELDS
 from calibrators.covariance import source_arrays
+from calibrators.profile._calibrate import CalibratedDetections, calibrate_detections
 from calibrators.scores import probabilities_logits
 
 if TYPE_CHECKING:
     from calibrators.data import Dump
-    from calibrators.profile._calibrate import CalibratedDetections
     from calibrators.profile._profile import CalibrationProfile
 
 __all__ = ["WIRE_NAMES", "Detections", "box9", "calibrated_records", "detections_from_records",
@@ -153,8 +153,8 @@ class Detections:
                   levels: Sequence[float] | None = None) -> CalibratedDetections:
         """These detections calibrated with `profile` (`_calibrate`), in this order;
         the result keeps this batch (`.detections`) for its identity and boxes."""
-        out = profile.calibrate(**self.calibrate_arguments(),
-                                ellipse_confidence=ellipse_confidence, levels=levels)
+        out = calibrate_detections(profile, **self.calibrate_arguments(),
+                                   ellipse_confidence=ellipse_confidence, levels=levels)
         return replace(out, detections=self)
 
 
