@@ -13,17 +13,18 @@ from typing import Any
 from app.cli.main import CliError
 from app.cli.offline import add_dump_input, load_input
 
+CONVERT_DESCRIPTION = """\
+Write an NPZ dump (or a nuScenes results JSON with --nuscenes-gt) as a Parquet dataset
+folder (docs/formats.md): detections and ground truth in parts of whole frames, for streamed
+and Dask fits. With --from, read a detector's own files (KITTI labels, OpenPCDet result.pkl,
+MMDetection3D arrays, Argoverse 2 feather) into a dump: OUT_DIR ending in .npz writes it as
+a validation dump."""
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add `convert`."""
     conv = subparsers.add_parser(
         "convert", help="a dump or a detector's own files as a Parquet dataset or NPZ dump",
-        description="Write an NPZ dump (or a nuScenes results JSON with --nuscenes-gt) as a "
-                    "Parquet dataset folder (docs/formats.md): detections and ground truth "
-                    "in parts of whole frames, for streamed and Dask fits. With --from, read "
-                    "a detector's own files (KITTI labels, OpenPCDet result.pkl, "
-                    "MMDetection3D arrays, Argoverse 2 feather) into a dump: OUT_DIR ending "
-                    "in .npz writes it as a validation dump.")
+        description=CONVERT_DESCRIPTION)
     add_dump_input(conv)
     conv.add_argument("out_dir", metavar="OUT_DIR", help="dataset folder to create")
     conv.add_argument("--rows-per-part", type=int, default=None,

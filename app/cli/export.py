@@ -18,17 +18,17 @@ from app.cli.offline import load_profile
 from calibrators.core.defaults import DEFAULT_LEVELS
 from calibrators.core.vocab import COV_SOURCES
 
+EXPORT_DESCRIPTION = """\
+Write the profile's score calibration, covariance scaling and regions as a graph that takes
+the detector's tensors (logits or per-layer logits, boxes or per-layer boxes, the raw
+covariance for cov_source 'given', the box hypotheses and group scores for 'hypotheses', ego
+position) and returns calibrated scores, covariances and ellipses; see docs/export.md."""
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `export` subcommand."""
     ex = subparsers.add_parser(
         "export", help="write a profile's calibration as an ONNX or TorchScript graph",
-        description="Write the profile's score calibration, covariance scaling and regions "
-                    "as a graph that takes the detector's tensors (logits or per-layer "
-                    "logits, boxes or per-layer boxes, the raw covariance for cov_source "
-                    "'given', the box hypotheses and group scores for 'hypotheses', ego "
-                    "position) and returns calibrated scores, covariances and "
-                    "ellipses; see docs/export.md.")
+        description=EXPORT_DESCRIPTION)
     ex.add_argument("profile", metavar="PROFILE",
                     help="profile JSON file, or a stored profile: name, name@version or "
                          "name@alias")

@@ -21,17 +21,28 @@ from calibrators.fit import FitOptions
 #: Ellipse levels `detcal calibrate` writes when --levels is not given (as the service's).
 
 
+FIT_DESCRIPTION = """\
+Match detections to ground truth, choose and fit each stage of the profile (score
+calibration, covariance scaling, regions: see the fit options), print the chosen method of
+each stage with its held-out score and the before/after table, and write the profile JSON. A
+Parquet dataset folder (detcal convert) is fit streamed, in bounded memory, with the thesis
+methods (temperature, depth, gaussian: pass --calibration 0 or name them), optionally on
+Dask (--dask)."""
+
+EVALUATE_DESCRIPTION = """\
+nuScenes mAP / NDS, per-class AP, and calibration metrics (before, and after the profile if
+one is given)."""
+
+CALIBRATE_DESCRIPTION = """\
+Apply a profile to an NPZ dump or a nuScenes results JSON and write a nuScenes results JSON
+with the calibrated detection_score and, as extra keys, the raw score, the calibrated
+covariance and the ellipses at --levels."""
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `fit`, `evaluate` and `calibrate` subcommands."""
     fit = subparsers.add_parser(
         "fit", help="fit a calibration profile on a validation dump",
-        description="Match detections to ground truth, choose and fit each stage of the "
-                    "profile (score calibration, covariance scaling, regions: see the fit "
-                    "options), print the chosen method of each stage with its held-out score "
-                    "and the before/after table, and write the profile JSON. A "
-                    "Parquet dataset folder (detcal convert) is fit streamed, in bounded "
-                    "memory, with the thesis methods (temperature, depth, gaussian: pass "
-                    "--calibration 0 or name them), optionally on Dask (--dask).")
+        description=FIT_DESCRIPTION)
     add_dump_input(fit)
     fit.add_argument("--out", default="profile.json", help="profile JSON to write "
                      "(default: %(default)s)")
@@ -45,8 +56,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     ev = subparsers.add_parser(
         "evaluate", help="mAP and calibration metrics of a dump",
-        description="nuScenes mAP / NDS, per-class AP, and calibration metrics (before, and "
-                    "after the profile if one is given).")
+        description=EVALUATE_DESCRIPTION)
     add_dump_input(ev)
     ev.add_argument("--profile", help="profile JSON to apply")
     ev.add_argument("--threshold", type=float, default=MATCH_THRESHOLD,
@@ -56,10 +66,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
     cal = subparsers.add_parser(
         "calibrate", help="calibrate detections offline into a nuScenes results JSON",
-        description="Apply a profile to an NPZ dump or a nuScenes results JSON and write a "
-                    "nuScenes results JSON with the calibrated detection_score and, as extra "
-                    "keys, the raw score, the calibrated covariance and the ellipses at "
-                    "--levels.")
+        description=CALIBRATE_DESCRIPTION)
     cal.add_argument("file", metavar="FILE", help="NPZ dump or nuScenes results JSON")
     cal.add_argument("--profile", required=True, help="profile JSON to apply")
     cal.add_argument("--levels", nargs="+", metavar="Q", default=list(DEFAULT_LEVELS),

@@ -17,15 +17,16 @@ from pathlib import Path
 
 from detectors.vocab import SENSORS
 
+REPORT_DESCRIPTION = """\
+Fit TS / modulation / depth scaling on the val split of each sensor, measure them and the
+sampling baselines (MC dropout, deep ensembles when trained) on the test split; write
+markdown tables, PNG + SVG figures and OUT/README.md. Forward passes are cached in CACHE."""
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `report` subcommand."""
     p = subparsers.add_parser(
         "report", help="thesis-style calibration report of the bundled detectors",
-        description="Fit TS / modulation / depth scaling on the val split of each sensor, "
-                    "measure them and the sampling baselines (MC dropout, deep ensembles when "
-                    "trained) on the test split; write markdown tables, PNG + SVG figures and "
-                    "OUT/README.md. Forward passes are cached in CACHE.")
+        description=REPORT_DESCRIPTION)
     p.add_argument("--sensor", action="append", choices=SENSORS, required=True,
                    help="sensor to report (repeat for several)")
     p.add_argument("--val-frames", type=_positive, default=200,

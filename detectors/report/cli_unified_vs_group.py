@@ -16,15 +16,16 @@ import time
 from collections.abc import Callable
 from pathlib import Path
 
+REPORT_V2_DESCRIPTION = """\
+mAP / per-class AP, class switches per decoder layer, inter-group std, attention-spread
+trends and the hypotheses vs layers covariance sources of a group-head model (WEIGHTS)
+against a unified-head one (BASELINE), on the first N test scenes; writes one markdown page."""
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `report-v2` subcommand."""
     p = subparsers.add_parser(
         "report-v2", help="unified-vs-group detector page (docs/report/detectors_v2.md)",
-        description="mAP / per-class AP, class switches per decoder layer, inter-group std, "
-                    "attention-spread trends and the hypotheses vs layers covariance sources "
-                    "of a group-head model (WEIGHTS) against a unified-head one (BASELINE), "
-                    "on the first N test scenes; writes one markdown page.")
+        description=REPORT_V2_DESCRIPTION)
     p.add_argument("--weights", type=Path, required=True, help="group-head weights file")
     p.add_argument("--baseline", type=Path, required=True, help="unified-head weights file")
     p.add_argument("--test-frames", type=_count(1), required=True,
