@@ -8,18 +8,9 @@
   (`summarize` -> `Summary`, `ProfileReport`) and its text table (`format_table`).
 """
 
-from calibrators.evaluation._ap import calc_ap, calc_tp, pr_curve, scale_iou, yaw_diff
+from calibrators.evaluation._ap import calc_ap, calc_tp
 from calibrators.evaluation._dump_match import match_dump, tp_residuals, ts_labels, ts_logits
-from calibrators.evaluation._matching import (
-    DEFAULT_CLASS_RANGE,
-    MatchResult,
-    candidate_pairs,
-    class_limits,
-    devkit_rank,
-    greedy_match,
-    in_range,
-    match,
-)
+from calibrators.evaluation._matching import DEFAULT_CLASS_RANGE, MatchResult, in_range, match
 from calibrators.evaluation._nuscenes_metrics import TP_METRICS, EvaluationReport, evaluate
 from calibrators.evaluation._reports import (
     ClassSummary,
@@ -34,7 +25,6 @@ from calibrators.evaluation._summary import SUMMARY_LEVELS, format_table, summar
 
 __all__ = ["DEFAULT_CLASS_RANGE", "SUMMARY_LEVELS", "TP_METRICS", "ClassSummary", "Counts",
            "CoverageSummary", "EvaluationReport", "MatchResult", "Pair", "ProfileReport",
-           "RegressionSummary", "Summary", "calc_ap", "calc_tp", "candidate_pairs",
-           "class_limits", "devkit_rank", "evaluate", "format_table", "greedy_match",
-           "in_range", "match", "match_dump", "pr_curve", "scale_iou", "summarize",
-           "tp_residuals", "ts_labels", "ts_logits", "yaw_diff"]
+           "RegressionSummary", "Summary", "calc_ap", "calc_tp", "evaluate", "format_table",
+           "in_range", "match", "match_dump", "summarize", "tp_residuals", "ts_labels",
+           "ts_logits"]
