@@ -5,7 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Response
 
 from app.http.deps import CacheDep, SettingsDep, StoreDep
-from app.schemas.health import Health, Readiness
+from app.schemas.liveness import Health, Readiness
 from app.store import NotFoundError
 
 router = APIRouter(tags=["health"])
