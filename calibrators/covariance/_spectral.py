@@ -75,7 +75,9 @@ def _blocks(cov: np.ndarray, r: np.ndarray, hypot: bool,
 
 
 class _Block:
-    """Buffers `[m]` of one block of `spectral_2x2` and its computation on them."""
+    """Buffers `[m]` of one block of `spectral_2x2` and its computation on them.
+
+    `buf` rows: 0 `(a - c)/2`, 1 `h`, 2 and 3 scratch of the projections, 4 scratch."""
 
     def __init__(self, size: int) -> None:
         self.buf, self.zero = np.empty((5, size)), np.zeros(size)
@@ -92,17 +94,43 @@ class _Block:
 
         The tolerances (`covariance_tolerance` of `max(|a|, |b|, |c|)`) are only computed
         where a test can fail: `b_t != b` somewhere, or a negative smallest eigenvalue."""
-        m = len(flat)
-        diff, half_gap, y_sq, along, tmp = self.buf[:, :m]
-        mask = self.mask[:m]
         a, b, b_t, c = flat.T
-        x, y = r.T
-        tol = None
-        if np.not_equal(b_t, b, out=mask).any():
-            tol = _tolerance(a, b, c)
-            np.subtract(b_t, b, out=tmp)
-            _check_symmetric(np.abs(tmp, out=tmp), tol, offset)
+        tol = self._symmetry_tolerance(a, b, b_t, c, offset)
+        self._eigenvalues(a, b, c, eig, hypot)
+        lo, hi = eig
+        psd = None
+        lo_min = float(lo.min())
+        if lo_min < 0.0:
+            tol = _tolerance(a, b, c) if tol is None else tol
+            if np.less(lo, -tol).any():
+                psd = (offset, lo.copy(), tol.copy())
+        # 1e-12·max(|λ_hi|, tiny) is both the `_zero_tiny` threshold and the one of h = 0 to
+        # rounding; where every λ_lo (<= λ_hi) and h is above its largest, no row is tested
+        bound = 1e-12 * max(abs(float(hi.max())), abs(float(hi.min())), _TINY)
+        self._projections(r, b, hi, sq, bound)
+        if not lo_min > bound:
+            _zero_tiny(eig)
+        return psd
 
+    def _symmetry_tolerance(self, a: np.ndarray, b: np.ndarray, b_t: np.ndarray, c: np.ndarray,
+                            offset: int) -> np.ndarray | None:
+        """Raise if a matrix is not symmetric; the tolerances `[m]` if they were needed for
+        that (some `b_t != b`), else None."""
+        m = len(a)
+        if not np.not_equal(b_t, b, out=self.mask[:m]).any():
+            return None
+        tol = _tolerance(a, b, c)
+        tmp = self.buf[4, :m]
+        np.subtract(b_t, b, out=tmp)
+        _check_symmetric(np.abs(tmp, out=tmp), tol, offset)
+        return tol
+
+    def _eigenvalues(self, a: np.ndarray, b: np.ndarray, c: np.ndarray, eig: np.ndarray,
+                     hypot: bool) -> None:
+        """λ = (a + c)/2 ∓ h into `eig [2, m]`, with `(a - c)/2` and h left in `buf` rows 0
+        and 1; `_Overflow` as `run` says."""
+        m = len(a)
+        diff, half_gap, tmp = self.buf[0, :m], self.buf[1, :m], self.buf[4, :m]
         np.subtract(a, c, out=diff)
         diff *= 0.5
         lo, hi = eig
@@ -122,13 +150,15 @@ class _Block:
                 raise _Overflow
         np.subtract(hi, half_gap, out=lo)
         hi += half_gap
-        psd = None
-        lo_min = float(lo.min())
-        if lo_min < 0.0:
-            tol = _tolerance(a, b, c) if tol is None else tol
-            if np.less(lo, -tol).any():
-                psd = (offset, lo.copy(), tol.copy())
 
+    def _projections(self, r: np.ndarray, b: np.ndarray, hi: np.ndarray, sq: np.ndarray,
+                     bound: float) -> None:
+        """`(Uᵀ r)²` into `sq [2, m]` (row 0 along the minor axis, row 1 the major) from the
+        `buf` rows `_eigenvalues` left; p_hi is 0 where h <= 1e-12·max(|λ_hi|, tiny), tested
+        only unless every h is above `bound`."""
+        m = len(r)
+        diff, half_gap, y_sq, along, tmp = self.buf[:, :m]
+        x, y = r.T
         rr, p_hi = sq
         np.multiply(x, x, out=rr)
         np.multiply(y, y, out=y_sq)
@@ -139,25 +169,19 @@ class _Block:
         np.multiply(x, y, out=y_sq)
         y_sq *= b
         along += y_sq
-        # 1e-12·max(|λ_hi|, tiny) is both the `_zero_tiny` threshold and the one of h = 0 to
-        # rounding; where every λ_lo (<= λ_hi) and h is above its largest, no row is tested
-        bound = 1e-12 * max(abs(float(hi.max())), abs(float(hi.min())), _TINY)
         with np.errstate(divide="ignore", invalid="ignore"):
             np.divide(along, half_gap, out=p_hi)
         if not float(half_gap.min()) > bound:
             np.abs(hi, out=tmp)
             np.maximum(tmp, _TINY, out=tmp)
             tmp *= 1e-12
-            np.copyto(p_hi, 0.0, where=np.less_equal(half_gap, tmp, out=mask))
+            np.copyto(p_hi, 0.0, where=np.less_equal(half_gap, tmp, out=self.mask[:m]))
         np.multiply(rr, 0.5, out=tmp)
         p_hi += tmp
         # np.clip(p_hi, 0, rr) at a fifth of the cost (np.maximum is slow on a scalar)
         np.maximum(p_hi, self.zero[:m], out=p_hi)
         np.minimum(p_hi, rr, out=p_hi)
         rr -= p_hi  # row 0 becomes p_lo
-        if not lo_min > bound:
-            _zero_tiny(eig)
-        return psd
 
 
 def _scale(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:

@@ -72,6 +72,21 @@ class Dump:
     det_label: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        n_classes, n_frames = self._check_names()
+        logits, boxes, det_frame = self._check_detections(n_classes, n_frames)
+        gt_boxes, gt_frame, gt_labels = self._check_ground_truth(n_classes, n_frames)
+        for name, value in (("det_logits", logits), ("det_boxes", boxes), ("det_frame", det_frame),
+                            ("gt_boxes", gt_boxes), ("gt_frame", gt_frame),
+                            ("gt_labels", gt_labels)):
+            object.__setattr__(self, name, value)
+        n = len(logits)
+        self._check_ego(n_frames)
+        self._check_covariance(n)
+        self._check_hypotheses(n)
+        self._check_label(n, n_classes)
+
+    def _check_names(self) -> tuple[int, int]:
+        """Validate and normalise `classes`, `score_mode` and `frame_ids`: (C, F)."""
         set_ = object.__setattr__
         classes = tuple(str(c) for c in np.asarray(self.classes).reshape(-1).tolist())
         if not classes:
@@ -85,14 +100,17 @@ class Dump:
         if len(set(frame_ids.tolist())) != len(frame_ids):
             raise ValueError("frame_ids has duplicate tokens")
         set_(self, "frame_ids", frame_ids)
-        n_frames = len(frame_ids)
+        return len(classes), len(frame_ids)
 
+    def _check_detections(self, n_classes: int,
+                          n_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The validated `det_logits [N, L, C']`, `det_boxes [N, L, 9]` and `det_frame [N]`."""
         logits = as_float_array("det_logits", self.det_logits, ndim=3)
         n, n_layers, width = logits.shape
-        want = len(classes) + (1 if self.score_mode == "softmax" else 0)
+        want = n_classes + (1 if self.score_mode == "softmax" else 0)
         if width != want:
             raise ValueError(f"det_logits has {width} columns but {self.score_mode} mode with "
-                             f"{len(classes)} classes needs {want}")
+                             f"{n_classes} classes needs {want}")
         if n_layers < 1:
             raise ValueError("det_logits must have at least one decoder layer (L >= 1)")
         boxes = as_float_array("det_boxes", self.det_boxes, ndim=3)
@@ -101,7 +119,11 @@ class Dump:
         det_frame = as_int_array("det_frame", self.det_frame)
         check_length("det_frame", det_frame, n, "det_logits")
         check_index("det_frame", det_frame, n_frames, "frames")
+        return logits, boxes, det_frame
 
+    def _check_ground_truth(self, n_classes: int,
+                            n_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The validated `gt_boxes [G, 9]`, `gt_frame [G]` and `gt_labels [G]`."""
         gt_boxes = as_float_array("gt_boxes", self.gt_boxes, ndim=2)
         if gt_boxes.shape[1:] != (9,):
             raise ValueError(f"gt_boxes must have shape [G, 9], got {gt_boxes.shape}")
@@ -110,35 +132,38 @@ class Dump:
         check_length("gt_frame", gt_frame, len(gt_boxes), "gt_boxes")
         check_length("gt_labels", gt_labels, len(gt_boxes), "gt_boxes")
         check_index("gt_frame", gt_frame, n_frames, "frames")
-        check_index("gt_labels", gt_labels, len(classes), "classes")
+        check_index("gt_labels", gt_labels, n_classes, "classes")
+        return gt_boxes, gt_frame, gt_labels
 
-        for name, value in (("det_logits", logits), ("det_boxes", boxes), ("det_frame", det_frame),
-                            ("gt_boxes", gt_boxes), ("gt_frame", gt_frame),
-                            ("gt_labels", gt_labels)):
-            set_(self, name, value)
-
+    def _check_ego(self, n_frames: int) -> None:
+        """Validate the optional `ego_translation [F, 3]`."""
         if self.ego_translation is not None:
             ego = as_float_array("ego_translation", self.ego_translation, ndim=2)
             if ego.shape != (n_frames, 3):
                 raise ValueError(f"ego_translation must have shape [{n_frames}, 3], "
                                  f"got {ego.shape}")
-            set_(self, "ego_translation", ego)
+            object.__setattr__(self, "ego_translation", ego)
+
+    def _check_covariance(self, n: int) -> None:
+        """Validate `cov_dims` and the optional `det_cov [N, D, D]` over them."""
         cov_dims = tuple(str(d) for d in np.asarray(self.cov_dims).reshape(-1).tolist())
         for d in cov_dims:
             check_choice("cov_dims", d, BOX_FIELDS)
         if len(set(cov_dims)) != len(cov_dims) or not cov_dims:
             raise ValueError("cov_dims must name distinct box fields")
-        set_(self, "cov_dims", cov_dims)
+        object.__setattr__(self, "cov_dims", cov_dims)
         if self.det_cov is not None:
             cov = as_float_array("det_cov", self.det_cov, ndim=3)
             check_covariances("det_cov", cov, n=n, dim=len(cov_dims))
-            set_(self, "det_cov", cov)
-        self._check_hypotheses(n)
+            object.__setattr__(self, "det_cov", cov)
+
+    def _check_label(self, n: int, n_classes: int) -> None:
+        """Validate the optional `det_label [N]`."""
         if self.det_label is not None:
             label = as_int_array("det_label", self.det_label)
             check_length("det_label", label, n, "det_logits")
-            check_index("det_label", label, len(classes), "classes")
-            set_(self, "det_label", label)
+            check_index("det_label", label, n_classes, "classes")
+            object.__setattr__(self, "det_label", label)
 
     def _check_hypotheses(self, n: int) -> None:
         """Validate the optional `det_hyp_boxes [N, H, 9]` / `det_hyp_scores [N, H]` pair."""

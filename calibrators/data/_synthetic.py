@@ -81,27 +81,68 @@ def synthetic_dump(n_frames: int = 50, n_gt_per_frame: int = 20,
     """
     classes = tuple(str(c) for c in classes)
     _check_args(n_frames, n_gt_per_frame, classes, score_mode, n_layers, temperature)
+    n_hypotheses = _checked_n_hypotheses(n_hypotheses)
+    k_true = _checked_depth_k(depth_k)
+    rng = np.random.default_rng(seed)
+    shapes, freq, moving, ks = _class_table(classes, k_true)
+
+    gt_frame, gt_labels, gt_boxes = _ground_truth(rng, n_frames, n_gt_per_frame, shapes,
+                                                  freq / freq.sum(), moving)
+    det_frame, det_labels, final, cov, rows = _detections(
+        rng, n_frames, score_mode, shapes, freq, moving, ks, (gt_frame, gt_labels, gt_boxes))
+    logits = _emitted_logits(rng, rows, n_layers, temperature)
+    layer_boxes = _layer_boxes(rng, final, ks[det_labels], n_layers)
+    hyp_boxes = hyp_scores = None
+    if n_hypotheses:
+        noise = _position_noise(final, cov, ks[det_labels])
+        hyp_boxes, hyp_scores = _hypotheses(rng, final, noise, n_hypotheses)
+    return Dump(
+        classes=classes, score_mode=score_mode,
+        frame_ids=np.array([f"synth-{seed}-{i:05d}" for i in range(n_frames)]),
+        det_frame=det_frame, det_logits=logits, det_boxes=layer_boxes,
+        gt_frame=gt_frame, gt_labels=gt_labels, gt_boxes=gt_boxes,
+        det_cov=cov if with_cov else None, cov_dims=("x", "y"),
+        det_hyp_boxes=hyp_boxes, det_hyp_scores=hyp_scores,
+    )
+
+
+def _checked_n_hypotheses(n_hypotheses: int) -> int:
     if isinstance(n_hypotheses, bool) or int(n_hypotheses) != n_hypotheses or n_hypotheses < 0:
         raise ValueError(f"n_hypotheses must be an integer >= 0, got {n_hypotheses!r}")
-    n_hypotheses = int(n_hypotheses)
+    return int(n_hypotheses)
+
+
+def _checked_depth_k(depth_k: Mapping[str, float] | None) -> dict[str, float]:
+    """The true k per class name (default `DEFAULT_DEPTH_K`), each finite and >= 0."""
     k_true = dict(DEFAULT_DEPTH_K if depth_k is None else depth_k)
     for name, k in k_true.items():
         if not np.isfinite(k) or k < 0:
             raise ValueError(f"depth_k[{name!r}] must be a finite number >= 0, got {k}")
-    rng = np.random.default_rng(seed)
-    n_cls = len(classes)
+    return k_true
+
+
+def _class_table(classes: tuple[str, ...], k_true: Mapping[str, float]
+                 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per class: shape `[C, 4]` (w, l, h, z-centre), relative frequency, moving, true k."""
     shapes = np.array([_SHAPES.get(c, _SHAPES["car"])[:4] for c in classes])   # [C, 4]
     freq = np.array([_SHAPES.get(c, _SHAPES["car"])[4] for c in classes])
     moving = np.array([_SHAPES.get(c, _SHAPES["car"])[5] for c in classes])
     ks = np.array([float(k_true.get(c, 0.004)) for c in classes])
+    return shapes, freq, moving, ks
 
-    gt_frame, gt_labels, gt_boxes = _ground_truth(rng, n_frames, n_gt_per_frame, shapes,
-                                                  freq / freq.sum(), moving)
+
+def _detections(rng: np.random.Generator, n_frames: int, score_mode: str, shapes: np.ndarray,
+                freq: np.ndarray, moving: np.ndarray, ks: np.ndarray,
+                gt: tuple[np.ndarray, np.ndarray, np.ndarray]) -> tuple[np.ndarray, ...]:
+    """`det_frame [N]`, labels `[N]`, final boxes `[N, 9]`, reported covariances
+    `[N, 2, 2]` and calibrated logit rows `[N, C']` of the TPs (detected ground truth) and
+    FPs, shuffled within frames."""
+    gt_frame, gt_labels, gt_boxes = gt
     detected = np.flatnonzero(rng.random(len(gt_labels)) < _DETECT_PROB)
-    u_tp, u_fp = _calibrated_logits(rng, len(detected), score_mode, n_cls)
+    u_tp, u_fp = _calibrated_logits(rng, len(detected), score_mode, len(freq))
     n_fp = len(u_fp)
     fp_frame = rng.integers(0, n_frames, n_fp)
-    fp_labels = rng.choice(n_cls, n_fp, p=freq / freq.sum())
+    fp_labels = rng.choice(len(freq), n_fp, p=freq / freq.sum())
 
     tp_boxes, tp_cov = _true_positive_boxes(rng, gt_boxes[detected], ks[gt_labels[detected]])
     fp_boxes, fp_cov = _false_positive_boxes(rng, fp_frame, fp_labels, shapes, moving,
@@ -112,24 +153,13 @@ def synthetic_dump(n_frames: int = 50, n_gt_per_frame: int = 20,
     cov = np.concatenate([tp_cov, fp_cov])
     rows = _place_label(np.concatenate([u_tp, u_fp]), det_labels)
     order = np.lexsort((rng.random(len(det_frame)), det_frame))   # shuffle within frames
-    det_frame, det_labels, final, cov, rows = (a[order] for a in
-                                               (det_frame, det_labels, final, cov, rows))
+    return tuple(a[order] for a in (det_frame, det_labels, final, cov, rows))
 
-    logits = _emitted_logits(rng, rows, n_layers, temperature)
-    layer_boxes = _layer_boxes(rng, final, ks[det_labels], n_layers)
-    hyp_boxes = hyp_scores = None
-    if n_hypotheses:
-        d = np.hypot(final[:, 0], final[:, 1])
-        noise = cov + (ks[det_labels] * d)[:, None, None] * np.eye(2)
-        hyp_boxes, hyp_scores = _hypotheses(rng, final, noise, n_hypotheses)
-    return Dump(
-        classes=classes, score_mode=score_mode,
-        frame_ids=np.array([f"synth-{seed}-{i:05d}" for i in range(n_frames)]),
-        det_frame=det_frame, det_logits=logits, det_boxes=layer_boxes,
-        gt_frame=gt_frame, gt_labels=gt_labels, gt_boxes=gt_boxes,
-        det_cov=cov if with_cov else None, cov_dims=("x", "y"),
-        det_hyp_boxes=hyp_boxes, det_hyp_scores=hyp_scores,
-    )
+
+def _position_noise(final: np.ndarray, cov: np.ndarray, k: np.ndarray) -> np.ndarray:
+    """`[N, 2, 2]` a detection's true position noise `Σ_i + k_c · d_i · I`."""
+    d = np.hypot(final[:, 0], final[:, 1])
+    return cov + (k * d)[:, None, None] * np.eye(2)
 
 
 def _check_args(n_frames: int, n_gt: int, classes: tuple[str, ...], score_mode: str,

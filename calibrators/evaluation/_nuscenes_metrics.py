@@ -28,6 +28,7 @@ from calibrators.data import Dump
 from calibrators.evaluation._ap import calc_ap, calc_tp, pr_curve, scale_iou, yaw_diff
 from calibrators.evaluation._matching import (
     DEFAULT_CLASS_RANGE,
+    Candidates,
     MatchResult,
     candidate_pairs,
     class_limits,
@@ -90,45 +91,22 @@ def evaluate(dump: Dump, thresholds: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
         raise ValueError(f"dump must be a calibrators.Dump, got {type(dump).__name__}")
     ths = _thresholds(thresholds)
     tp_th = _thresholds((tp_threshold,), "tp_threshold")[0]
-    if scores is None:
-        det_scores = dump.det_scores
-    else:
-        det_scores = as_float_array("scores", scores, ndim=1)
-        check_length("scores", det_scores, dump.n_detections, "det_logits")
+    det_scores = _scores(dump, scores)
     _check_box_count(dump, max_boxes_per_frame)
 
     limits = class_limits(dump.classes, class_range)
-    det_keep = in_range(dump.final_boxes[:, :2], dump.ego_xy(dump.det_frame), dump.det_labels,
-                        dump.classes, class_range)
-    gt_keep = in_range(dump.gt_boxes[:, :2], dump.ego_xy(dump.gt_frame), dump.gt_labels,
-                       dump.classes, class_range)
-    det_boxes, gt_boxes = dump.final_boxes[det_keep], dump.gt_boxes[gt_keep]
-    det_frame, gt_frame = dump.det_frame[det_keep], dump.gt_frame[gt_keep]
-    det_labels, gt_labels = dump.det_labels[det_keep], dump.gt_labels[gt_keep]
-    det_scores = det_scores[det_keep]
-
-    rank = devkit_rank(det_scores, det_frame)
-    pairs = candidate_pairs(rank, det_frame, det_labels, det_boxes[:, :2], gt_frame, gt_labels,
-                            gt_boxes[:, :2], max(*ths, tp_th))
+    kept = _Kept.of(dump, det_scores, class_range)
+    rank = devkit_rank(kept.det_scores, kept.det_frame)
+    pairs = candidate_pairs(rank, kept.det_frame, kept.det_labels, kept.det_boxes[:, :2],
+                            kept.gt_frame, kept.gt_labels, kept.gt_boxes[:, :2],
+                            max(*ths, tp_th))
     visiting = np.argsort(rank)
-    by_class = [visiting[det_labels[visiting] == c] for c in range(len(dump.classes))]
-    n_pos = np.bincount(gt_labels, minlength=len(dump.classes))
+    by_class = [visiting[kept.det_labels[visiting] == c] for c in range(len(dump.classes))]
+    n_pos = np.bincount(kept.gt_labels, minlength=len(dump.classes))
 
-    ap: dict[str, dict[str, float]] = {c: {} for c in dump.classes}
-    for th in ths:
-        result = greedy_match(rank, pairs, th, len(gt_frame))
-        for c, name in enumerate(dump.classes):
-            rows = by_class[c]
-            ap[name][str(th)] = calc_ap(pr_curve(result.tp[rows], det_scores[rows], n_pos[c]))
-
-    result = greedy_match(rank, pairs, tp_th, len(gt_frame))
-    tp_errors = {}
-    for c, name in enumerate(dump.classes):
-        rows = by_class[c]
-        curve = pr_curve(result.tp[rows], det_scores[rows], n_pos[c])
-        errors = _tp_errors(name, rows[result.tp[rows]], result, det_boxes, gt_boxes)
-        tp_errors[name] = {m: (np.nan if m in NOT_APPLICABLE.get(name, ()) else
-                               calc_tp(curve, errors[m])) for m in TP_METRICS}
+    ap = _ap_table(dump.classes, kept, rank, pairs, ths, by_class, n_pos)
+    tp_result = greedy_match(rank, pairs, tp_th, len(kept.gt_frame))
+    tp_errors = _tp_error_table(dump.classes, kept, tp_result, by_class, n_pos)
 
     class_ap = {name: float(np.mean(list(ap[name].values()))) for name in dump.classes}
     mean_ap = float(np.mean(list(class_ap.values())))
@@ -141,7 +119,74 @@ def evaluate(dump: Dump, thresholds: Sequence[float] = (0.5, 1.0, 2.0, 4.0),
         class_range={c: (None if np.isinf(r) else float(r))
                      for c, r in zip(dump.classes, limits, strict=True)},
         n_frames=dump.n_frames, n_detections=dump.n_detections, n_gt=len(dump.gt_boxes),
-        n_detections_evaluated=int(det_keep.sum()), n_gt_evaluated=int(gt_keep.sum()))
+        n_detections_evaluated=int(kept.det_keep.sum()),
+        n_gt_evaluated=int(kept.gt_keep.sum()))
+
+
+def _scores(dump: Dump, scores: np.ndarray | None) -> np.ndarray:
+    """`[N]` the scores to rank by: `scores` when given (checked), else the dump's."""
+    if scores is None:
+        return dump.det_scores
+    det_scores = as_float_array("scores", scores, ndim=1)
+    check_length("scores", det_scores, dump.n_detections, "det_logits")
+    return det_scores
+
+
+@dataclass(frozen=True)
+class _Kept:
+    """The final-layer detections and the ground truth within their class's range."""
+
+    det_keep: np.ndarray
+    gt_keep: np.ndarray
+    det_boxes: np.ndarray
+    gt_boxes: np.ndarray
+    det_frame: np.ndarray
+    gt_frame: np.ndarray
+    det_labels: np.ndarray
+    gt_labels: np.ndarray
+    det_scores: np.ndarray
+
+    @classmethod
+    def of(cls, dump: Dump, det_scores: np.ndarray,
+           class_range: Mapping[str, float] | None) -> _Kept:
+        det_keep = in_range(dump.final_boxes[:, :2], dump.ego_xy(dump.det_frame),
+                            dump.det_labels, dump.classes, class_range)
+        gt_keep = in_range(dump.gt_boxes[:, :2], dump.ego_xy(dump.gt_frame), dump.gt_labels,
+                           dump.classes, class_range)
+        return cls(det_keep=det_keep, gt_keep=gt_keep,
+                   det_boxes=dump.final_boxes[det_keep], gt_boxes=dump.gt_boxes[gt_keep],
+                   det_frame=dump.det_frame[det_keep], gt_frame=dump.gt_frame[gt_keep],
+                   det_labels=dump.det_labels[det_keep], gt_labels=dump.gt_labels[gt_keep],
+                   det_scores=det_scores[det_keep])
+
+
+def _ap_table(classes: Sequence[str], kept: _Kept, rank: np.ndarray, pairs: Candidates,
+              ths: tuple[float, ...], by_class: list[np.ndarray], n_pos: np.ndarray
+              ) -> dict[str, dict[str, float]]:
+    """class -> str(threshold) -> AP."""
+    ap: dict[str, dict[str, float]] = {c: {} for c in classes}
+    for th in ths:
+        result = greedy_match(rank, pairs, th, len(kept.gt_frame))
+        for c, name in enumerate(classes):
+            rows = by_class[c]
+            ap[name][str(th)] = calc_ap(pr_curve(result.tp[rows], kept.det_scores[rows],
+                                                 n_pos[c]))
+    return ap
+
+
+def _tp_error_table(classes: Sequence[str], kept: _Kept, result: MatchResult,
+                    by_class: list[np.ndarray], n_pos: np.ndarray
+                    ) -> dict[str, dict[str, float]]:
+    """class -> TP metric -> error at the TP threshold's matching `result` (NaN where the
+    devkit does not score it)."""
+    tp_errors = {}
+    for c, name in enumerate(classes):
+        rows = by_class[c]
+        curve = pr_curve(result.tp[rows], kept.det_scores[rows], n_pos[c])
+        errors = _tp_errors(name, rows[result.tp[rows]], result, kept.det_boxes, kept.gt_boxes)
+        tp_errors[name] = {m: (np.nan if m in NOT_APPLICABLE.get(name, ()) else
+                               calc_tp(curve, errors[m])) for m in TP_METRICS}
+    return tp_errors
 
 
 def _tp_errors(name: str, rows: np.ndarray, result: MatchResult, det_boxes: np.ndarray,

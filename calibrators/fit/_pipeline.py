@@ -72,70 +72,103 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
     Raises ValueError naming the option (an `OptionError`) for bad options, or a ValueError
     for a dump that cannot be fit.
     """
-    opts = options if options is not None else FitOptions()
-    if not isinstance(opts, FitOptions):
-        raise OptionError("options", f"options must be a FitOptions, got {type(opts).__name__}")
-    if overrides:
-        opts = FitOptions.from_dict({**opts.to_dict(), **overrides})
+    opts = resolve_options(options, overrides)
     report_progress = progress if progress is not None else _no_progress
-    threshold, dims, holdout = opts.threshold, opts.dims, opts.holdout
-    min_score, min_samples, seed = opts.min_score, opts.min_samples, opts.seed
     source = check_fit_input(dump, opts)
-    modulation = opts.modulation
     report_progress("prepare", 0.0)
     if dump_sha256 is None:
         dump_sha256 = dump_digest(dump)
-
-    work = canonical_order(dump)   # the same profile whatever the order of frames and boxes
-    if min_score is not None:
-        work = select_detections(work, work.det_scores >= min_score)
-    if work.n_detections == 0:
-        raise ValueError(f"min_score={min_score} leaves no detection to fit on")
-    fit_part, held_part = split_frames(work, holdout, seed)
+    fit_part, held_part = _fit_and_held(dump, opts)
 
     report_progress("match", 0.1)
-    matched = match_dump(fit_part, threshold)
-    if not matched.tp.any():
-        raise ValueError(f"no detection matched ground truth within {threshold} m (threshold); "
-                         f"check the dump's coordinates and classes")
+    matched = _matched(fit_part, opts.threshold)
     train, calib = _calibration_split(fit_part, matched, opts)
 
     report_progress("scores", 0.25)
     scores = fit_score_stage(fit_part, matched.tp, train[0], train[1].tp,
                              None if calib is None else calib[0],
                              None if calib is None else calib[1].tp,
-                             opts.score_method, modulation, min_samples)
+                             opts.score_method, opts.modulation, opts.min_samples)
 
     report_progress("covariance", 0.4)
     conformal = calib is not None and opts.region_method != "gaussian"
-    cov = fit_covariance_stage(train if conformal else (fit_part, matched), train, calib, dims,
-                               source, opts.cov_method, min_samples)
+    cov = fit_covariance_stage(train if conformal else (fit_part, matched), train, calib,
+                               opts.dims, source, opts.cov_method, opts.min_samples)
     profile = base_profile(dump, opts, scores, cov, source, _provenance(
         dump, fit_part, held_part, calib, matched.tp, dump_sha256, opts))
 
     report_progress("regions", 0.5)
+    profile, region = _with_regions(profile, fit_part, matched, train, calib, opts, conformal,
+                                    report_progress)
+    profile = versioned(profile)
+    report = _report(profile, fit_part, held_part, matched, opts,
+                     selection_of(scores, cov, region), report_progress)
+    profile = replace(profile, report=report)
+    report_progress("done", 1.0)
+    return profile
+
+
+def resolve_options(options: FitOptions | None, overrides: dict[str, Any]) -> FitOptions:
+    """`options` (default: all defaults) with the keyword `overrides` applied; `OptionError`
+    when `options` is not a `FitOptions`."""
+    opts = options if options is not None else FitOptions()
+    if not isinstance(opts, FitOptions):
+        raise OptionError("options", f"options must be a FitOptions, got {type(opts).__name__}")
+    if overrides:
+        opts = FitOptions.from_dict({**opts.to_dict(), **overrides})
+    return opts
+
+
+def _fit_and_held(dump: Dump, opts: FitOptions) -> tuple[Dump, Dump | None]:
+    """The fit part and the held-out part (None without one) of `dump`, in canonical order
+    (the same profile whatever the order of frames and boxes) and after `min_score`."""
+    work = canonical_order(dump)
+    if opts.min_score is not None:
+        work = select_detections(work, work.det_scores >= opts.min_score)
+    if work.n_detections == 0:
+        raise ValueError(f"min_score={opts.min_score} leaves no detection to fit on")
+    return split_frames(work, opts.holdout, opts.seed)
+
+
+def _matched(fit_part: Dump, threshold: float) -> MatchResult:
+    """The fit part's matching; ValueError when no detection matches."""
+    matched = match_dump(fit_part, threshold)
+    if not matched.tp.any():
+        raise ValueError(f"no detection matched ground truth within {threshold} m (threshold); "
+                         f"check the dump's coordinates and classes")
+    return matched
+
+
+def _with_regions(profile: CalibrationProfile, fit_part: Dump, matched: MatchResult,
+                  train: tuple[Dump, MatchResult], calib: tuple[Dump, MatchResult] | None,
+                  opts: FitOptions, conformal: bool, report_progress: Progress
+                  ) -> tuple[CalibrationProfile, RegionFit | None]:
+    """The profile with its region stage and (with `other_sources`) the other covariance
+    sources' stages, and the primary region fit."""
     region = fit_region_stage(
-        calib, None if calib is None else apply_profile(calib[0], profile).covariances, dims,
+        calib, None if calib is None else apply_profile(calib[0], profile).covariances, opts.dims,
         opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges)
     profile = replace(profile, regions=_regions(region))
     if opts.other_sources:   # serve whatever covariance evidence a request carries
         report_progress("other sources", 0.55)
         others = _other_sources(profile, fit_part, matched, train, calib, opts, conformal)
         profile = replace(profile, sources=others or None)
-    profile = versioned(profile)
-    selection = selection_of(scores, cov, region)
+    return profile, region
 
+
+def _report(profile: CalibrationProfile, fit_part: Dump, held_part: Dump | None,
+            matched: MatchResult, opts: FitOptions, selection: dict[str, Any],
+            report_progress: Progress) -> dict[str, Any]:
+    """The profile's report: the before/after summaries of the fit and held-out parts."""
     report_progress("report", 0.6)
-    fit_summary = summarize(fit_part, profile, threshold=threshold, match=matched)
+    fit_summary = summarize(fit_part, profile, threshold=opts.threshold, match=matched)
     held_summary = None
     if held_part is not None:
         report_progress("holdout report", 0.8)
-        held_summary = summarize(held_part, profile, threshold=threshold)
-    report = ProfileReport(fit=fit_summary, holdout=held_summary, min_score=min_score,
-                           threshold=threshold, selection=selection)
-    profile = replace(profile, report=report.to_dict())
-    report_progress("done", 1.0)
-    return profile
+        held_summary = summarize(held_part, profile, threshold=opts.threshold)
+    report = ProfileReport(fit=fit_summary, holdout=held_summary, min_score=opts.min_score,
+                           threshold=opts.threshold, selection=selection)
+    return report.to_dict()
 
 
 def base_profile(dump: Dump, opts: FitOptions, scores: ScoreFit, cov: CovarianceFit,

@@ -56,11 +56,17 @@ from calibrators.fit._options import FitOptions
 from calibrators.fit._pipeline import (
     base_profile,
     check_fit_input,
+    resolve_options,
     selection_of,
     source_stage,
     versioned,
 )
-from calibrators.fit._region_stage import CovarianceFit, covariance_fit, fit_region_stage
+from calibrators.fit._region_stage import (
+    CovarianceFit,
+    RegionFit,
+    covariance_fit,
+    fit_region_stage,
+)
 from calibrators.fit._score_stage import ScoreFit
 from calibrators.io.parquet import ParquetDataset, open_parquet
 from calibrators.profile import CalibrationProfile, make_provenance
@@ -111,11 +117,7 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     Raises `OptionError` for options a streamed fit cannot reproduce, `FieldError` for a bad
     dataset, ValueError for data that cannot be fit (the messages of `fit_profile`).
     """
-    opts = options if options is not None else FitOptions()
-    if not isinstance(opts, FitOptions):
-        raise OptionError("options", f"options must be a FitOptions, got {type(opts).__name__}")
-    if overrides:
-        opts = FitOptions.from_dict({**opts.to_dict(), **overrides})
+    opts = resolve_options(options, overrides)
     report_progress = progress if progress is not None else (lambda stage, fraction: None)
     ds = open_parquet(path)
     empty = ds.empty_dump()
@@ -126,12 +128,48 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     mapper = Mapper(client)
 
     report_progress("match", 0.1)
+    chunks, firsts, n_fit, n_tp = _first_passes(ds, held, opts, sources, mapper)
+
+    report_progress("scores", 0.25)
+    temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper)
+    report_progress("covariance", 0.4)
+    covs = {s: _depth(ds, s, firsts, opts) for s in sources}
+    scores = ScoreFit(method="temperature", temperature=temperature, params=None)
+    provenance = make_provenance(
+        dump_sha256=ds.source_sha256, n_frames=ds.n_frames, n_detections=ds.n_detections,
+        n_ground_truth=ds.n_ground_truth, n_fit_frames=ds.n_frames - int(held.sum()),
+        n_fit_detections=n_fit, n_holdout_frames=int(held.sum()), n_matched=n_tp,
+        holdout=opts.holdout, seed=int(opts.seed), n_calibration_frames=0,
+        options=opts.to_dict())
+    profile, region = _assembled(empty, opts, scores, covs, sources, provenance)
+
+    report_progress("report", 0.6)
+    report = _report(profile, opts, chunks, firsts, held, report_detections, mapper,
+                     selection_of(scores, covs[source], region))
+    report_progress("done", 1.0)
+    return replace(profile, report=report)
+
+
+def _sigmoid_span(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper
+                  ) -> tuple[float, float] | None:
+    """The range of the predicted logits the sigmoid bins span, from the logits alone; None
+    for softmax or when the fit rows are few enough to keep (module docstring, step 2)."""
+    if ds.score_mode != "sigmoid":
+        return None
+    ranges = mapper.map(sigmoid_range, chunks)
+    if sum(r[0] for r in ranges) > SIGMOID_BINS:
+        return (min(r[1] for r in ranges), max(r[2] for r in ranges))
+    return None
+
+
+def _first_passes(ds: ParquetDataset, held: np.ndarray, opts: FitOptions,
+                  sources: tuple[str, ...], mapper: Mapper
+                  ) -> tuple[list[Chunk], list[FirstPass], int, int]:
+    """The parts (each with the offset of its first fit row), their first passes (module
+    docstring, step 3), the fit rows and the true positives; the ValueErrors of
+    `fit_profile` when nothing is left to fit on or nothing matched."""
     chunks = _chunks(ds, held, opts)
-    span = None
-    if ds.score_mode == "sigmoid":   # the grid of the sigmoid bins, from the logits alone
-        ranges = mapper.map(sigmoid_range, chunks)
-        if sum(r[0] for r in ranges) > SIGMOID_BINS:
-            span = (min(r[1] for r in ranges), max(r[2] for r in ranges))
+    span = _sigmoid_span(ds, chunks, mapper)
     firsts: list[FirstPass] = mapper.map(first_pass, chunks, sources=sources, span=span)
     counts = np.array([f.n_fit_detections for f in firsts])
     if sum(int(f.fit_per_frame.sum() + f.held_per_frame.sum()) for f in firsts) == 0:
@@ -142,18 +180,15 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
                          f"(threshold); check the dump's coordinates and classes")
     offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
     chunks = [replace(c, offset=int(o)) for c, o in zip(chunks, offsets, strict=True)]
+    return chunks, firsts, int(counts.sum()), n_tp
 
-    report_progress("scores", 0.25)
-    temperature = _temperature(ds, opts, chunks, firsts, int(counts.sum()), mapper)
-    report_progress("covariance", 0.4)
-    covs = {s: _depth(ds, s, firsts, opts) for s in sources}
-    scores = ScoreFit(method="temperature", temperature=temperature, params=None)
-    provenance = make_provenance(
-        dump_sha256=ds.source_sha256, n_frames=ds.n_frames, n_detections=ds.n_detections,
-        n_ground_truth=ds.n_ground_truth, n_fit_frames=ds.n_frames - int(held.sum()),
-        n_fit_detections=int(counts.sum()), n_holdout_frames=int(held.sum()), n_matched=n_tp,
-        holdout=opts.holdout, seed=int(opts.seed), n_calibration_frames=0,
-        options=opts.to_dict())
+
+def _assembled(empty: Any, opts: FitOptions, scores: ScoreFit, covs: dict[str, CovarianceFit],
+               sources: tuple[str, ...], provenance: dict
+               ) -> tuple[CalibrationProfile, RegionFit | None]:
+    """The profile as `fit_profile` assembles it (Gaussian regions, no report yet), and its
+    region fit."""
+    source = sources[0]
     profile = base_profile(empty, opts, scores, covs[source], source, provenance)
     region = fit_region_stage(None, None, opts.dims, "gaussian", opts.min_group,
                               opts.distance_edges)
@@ -161,13 +196,7 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     if opts.other_sources:
         profile = replace(profile, sources={s: source_stage(covs[s], region)
                                             for s in sources[1:]} or None)
-    profile = versioned(profile)
-
-    report_progress("report", 0.6)
-    report = _report(profile, opts, chunks, firsts, held, report_detections, mapper,
-                     selection_of(scores, covs[source], region))
-    report_progress("done", 1.0)
-    return replace(profile, report=report)
+    return versioned(profile), region
 
 
 def _other_sources(empty: Any, source: str, opts: FitOptions) -> tuple[str, ...]:

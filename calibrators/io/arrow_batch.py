@@ -63,6 +63,26 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> Detections:
     `frame_id` and `id` the columns as they came (echoed back); FieldError naming the column
     (and `row`) that breaks the rules."""
     names = batch.schema.names
+    _check_names(names)
+    frame = _frame_ids(batch)
+    kwargs = _evidence(batch, names, classes)
+    kwargs.update(_boxes(batch, names))
+    if "covariance" in names:
+        kwargs["covariances"] = _covariances(batch.column("covariance"))
+    if "hypothesis_boxes" in names:
+        kwargs["hyp_boxes"] = _box_rows("hypothesis_boxes", batch.column("hypothesis_boxes"))
+    if "hypothesis_scores" in names:
+        kwargs["hyp_scores"] = _numbers("hypothesis_scores", batch.column("hypothesis_scores"),
+                                        (None,))
+    if "ego_translation" in names:
+        kwargs["ego_xy"] = _ego_xy(batch.column("ego_translation"))
+    return Detections(frame_ids=frame, rows=np.arange(batch.num_rows, dtype=np.int64),
+                      ego_xy=kwargs.pop("ego_xy", np.zeros((batch.num_rows, 2))),
+                      detection_ids=batch.column("id") if "id" in names else None, **kwargs)
+
+
+def _check_names(names: list[str]) -> None:
+    """FieldError for an unknown or repeated column, or no `frame_id`."""
     unknown = sorted(set(names) - KNOWN_COLUMNS)
     if unknown:
         raise FieldError(unknown[0], f"unknown column {unknown[0]!r}; the columns are "
@@ -71,11 +91,22 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> Detections:
         raise FieldError("body", f"repeated column names: {names}")
     if "frame_id" not in names:
         raise FieldError("frame_id", "the batch needs a frame_id column (string or integer)")
+
+
+def _frame_ids(batch: pa.RecordBatch) -> pa.Array:
+    """The `frame_id` column, strings or integers without nulls."""
     frame = batch.column("frame_id")
     if not (pa.types.is_string(frame.type) or pa.types.is_large_string(frame.type)
             or pa.types.is_integer(frame.type)):
         raise FieldError("frame_id", f"frame_id must be strings or integers, got {frame.type}")
     _no_nulls("frame_id", frame)
+    return frame
+
+
+def _evidence(batch: pa.RecordBatch, names: list[str],
+              classes: Sequence[str]) -> dict[str, np.ndarray]:
+    """The class evidence (`scores` with `labels`, `logits` or `layer_logits`) and the
+    asserted `labels` when given, as `Detections` arguments."""
     evidence = [c for c in EVIDENCE_COLUMNS if c in names]
     if len(evidence) != 1:
         raise FieldError("logits", f"give exactly one of the columns {list(EVIDENCE_COLUMNS)}; "
@@ -93,6 +124,13 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> Detections:
                                           (None, None))
     if "label" in names and evidence[0] != "score":   # the class each detection asserts
         kwargs["labels"] = _labels(batch.column("label"), classes)
+    return kwargs
+
+
+def _boxes(batch: pa.RecordBatch, names: list[str]) -> dict[str, np.ndarray]:
+    """The final `boxes` (from `box`, else the last of `layer_boxes`) and the `layer_boxes`
+    when given, as `Detections` arguments."""
+    kwargs: dict[str, np.ndarray] = {}
     if "layer_boxes" in names:
         kwargs["layer_boxes"] = _numbers("layer_boxes", batch.column("layer_boxes"), (None, 9))
     if "box" in names:
@@ -105,27 +143,26 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> Detections:
         kwargs["boxes"] = kwargs["layer_boxes"][:, -1]
     else:
         raise FieldError("box", "the batch needs a box (or layer_boxes) column")
-    if "covariance" in names:
-        flat = _numbers("covariance", batch.column("covariance"), (None,))
-        dim = int(round(np.sqrt(flat.shape[1])))
-        if dim * dim != flat.shape[1]:
-            raise FieldError("covariance", f"covariance rows must hold D·D values (row-major "
-                                           f"[D, D]), got {flat.shape[1]}")
-        kwargs["covariances"] = flat.reshape(len(flat), dim, dim)
-    if "hypothesis_boxes" in names:
-        kwargs["hyp_boxes"] = _box_rows("hypothesis_boxes", batch.column("hypothesis_boxes"))
-    if "hypothesis_scores" in names:
-        kwargs["hyp_scores"] = _numbers("hypothesis_scores", batch.column("hypothesis_scores"),
-                                        (None,))
-    if "ego_translation" in names:
-        ego = _numbers("ego_translation", batch.column("ego_translation"), (None,))
-        if ego.shape[1] not in (2, 3):
-            raise FieldError("ego_translation", f"ego_translation must have 3 (or 2) values, "
-                                                f"got {ego.shape[1]}")
-        kwargs["ego_xy"] = np.ascontiguousarray(ego[:, :2])
-    return Detections(frame_ids=frame, rows=np.arange(batch.num_rows, dtype=np.int64),
-                      ego_xy=kwargs.pop("ego_xy", np.zeros((batch.num_rows, 2))),
-                      detection_ids=batch.column("id") if "id" in names else None, **kwargs)
+    return kwargs
+
+
+def _covariances(arr: pa.Array) -> np.ndarray:
+    """`[N, D, D]` covariances of a column of row-major `[D·D]` lists."""
+    flat = _numbers("covariance", arr, (None,))
+    dim = int(round(np.sqrt(flat.shape[1])))
+    if dim * dim != flat.shape[1]:
+        raise FieldError("covariance", f"covariance rows must hold D·D values (row-major "
+                                       f"[D, D]), got {flat.shape[1]}")
+    return flat.reshape(len(flat), dim, dim)
+
+
+def _ego_xy(arr: pa.Array) -> np.ndarray:
+    """`[N, 2]` ego positions of an `ego_translation` column of 3 (or 2) values."""
+    ego = _numbers("ego_translation", arr, (None,))
+    if ego.shape[1] not in (2, 3):
+        raise FieldError("ego_translation", f"ego_translation must have 3 (or 2) values, "
+                                            f"got {ego.shape[1]}")
+    return np.ascontiguousarray(ego[:, :2])
 
 
 def calibrated_batch(res: CalibratedDetections, metadata: Mapping[str, Any]) -> pa.RecordBatch:
