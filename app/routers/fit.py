@@ -17,6 +17,7 @@ from app.http.errors import RequestError
 from app.schemas.fit import FitForm
 from app.schemas.profiles import FitAccepted
 from app.schemas.types import ErrorResponse, ProfileName
+from app.settings import Settings
 from app.store import AuditEntry, DumpRecord, Store
 from calibrators.core.errors import OptionError
 from calibrators.fit import FitOptions, check_fit_input
@@ -57,45 +58,10 @@ def fit(
                                                "first version of a name always is).")] = False,
 ) -> JSONResponse:
     """Store the uploaded dump (content-addressed) and queue a fit job; 202 with its id."""
-    forms = (dump is not None) + (results is not None or gt is not None) + (dataset is not None)
-    if forms != 1 or (results is None) != (gt is None):
-        raise RequestError(["body"], "upload either `dump` (NPZ) or both `results` and `gt` "
-                                     "(nuScenes JSON), or name a `dataset`")
-    from calibrators.io import load_dump, load_nuscenes
-
+    _check_forms(dump, results, gt, dataset)
     profile_name = name or settings.default_profile
-    try:
-        fit_options = FitOptions.from_dict(options.model_dump())
-    except OptionError as exc:
-        raise RequestError(["body", exc.field], str(exc)) from None
-    if dataset is not None:
-        stored, loaded = _dataset(store, settings.datasets_dir, dataset, fit_options,
-                                  settings.max_fit_detections)
-        gt_sha = None
-    elif dump is not None:
-        check_declared(declared_npz(dump.file), max_bytes=settings.max_dump_bytes,
-                       max_detections=settings.max_fit_detections, field="dump", what="fit")
-        stored = store.put_dump(dump.file, "npz")
-        gt_sha = None
-        loaded = load_upload(lambda: load_dump(store.dump_path(stored.sha256),
-                                               max_bytes=settings.max_dump_bytes), "dump")
-    else:
-        _check_json_pair(results, gt, settings.max_json_dump_bytes)  # type: ignore[arg-type]
-        stored = store.put_dump(results.file, "nuscenes-results")  # type: ignore[union-attr]
-        gt_sha = store.put_dump(gt.file, "nuscenes-gt").sha256  # type: ignore[union-attr]
-        loaded = load_upload(lambda: load_nuscenes(store.dump_path(stored.sha256),
-                                                   store.dump_path(gt_sha),
-                                                   max_bytes=settings.max_dump_bytes), "results")
-    if max(loaded.n_detections, len(loaded.gt_labels)) > settings.max_fit_detections:
-        raise RequestError(["body", "dump" if gt_sha is None else "results"],
-                           f"the fit dump holds {loaded.n_detections} detections and "
-                           f"{len(loaded.gt_labels)} ground-truth boxes, more than the limit of "
-                           f"{settings.max_fit_detections} (DETCAL_MAX_FIT_DETECTIONS)", status=413)
-    try:
-        check_fit_input(loaded, fit_options)
-    except OptionError as exc:
-        raise RequestError(["body", exc.field], str(exc)) from None
-    del loaded   # checked: free it before the job loads its own copy (one dump in memory)
+    fit_options = _fit_options(options)
+    stored, gt_sha = _store_checked(store, settings, fit_options, dump, results, gt, dataset)
     audit = AuditEntry("fit", profile_name, token, {"dump_sha256": stored.sha256,
                                                     "activate": activate})
     job = store.create_job(profile_name, fit_options.to_dict(), stored.sha256, gt_sha, activate,
@@ -105,6 +71,70 @@ def fit(
                        dump_sha256=stored.sha256, name=profile_name)
     return JSONResponse(body.model_dump(), status_code=status.HTTP_202_ACCEPTED,
                         headers={"Location": body.status_url})
+
+
+def _check_forms(dump: UploadFile | None, results: UploadFile | None, gt: UploadFile | None,
+                 dataset: str | None) -> None:
+    """A 422 unless the request gives exactly one form of fit input."""
+    forms = (dump is not None) + (results is not None or gt is not None) + (dataset is not None)
+    if forms != 1 or (results is None) != (gt is None):
+        raise RequestError(["body"], "upload either `dump` (NPZ) or both `results` and `gt` "
+                                     "(nuScenes JSON), or name a `dataset`")
+
+
+def _fit_options(options: FitForm) -> FitOptions:
+    """The form's fit options; a 422 at the option the library refuses."""
+    try:
+        return FitOptions.from_dict(options.model_dump())
+    except OptionError as exc:
+        raise RequestError(["body", exc.field], str(exc)) from None
+
+
+def _store_checked(store: Store, settings: Settings, fit_options: FitOptions,
+                   dump: UploadFile | None, results: UploadFile | None, gt: UploadFile | None,
+                   dataset: str | None) -> tuple[DumpRecord, str | None]:
+    """Store the fit input and check it loads and fits `fit_options`: its stored record and
+    the ground truth's hash (None but for nuScenes JSON). The loaded dump is freed on return,
+    before the job loads its own copy (one dump in memory)."""
+    stored, gt_sha, loaded = _store_input(store, settings, fit_options, dump, results, gt,
+                                          dataset)
+    if max(loaded.n_detections, len(loaded.gt_labels)) > settings.max_fit_detections:
+        raise RequestError(["body", "dump" if gt_sha is None else "results"],
+                           f"the fit dump holds {loaded.n_detections} detections and "
+                           f"{len(loaded.gt_labels)} ground-truth boxes, more than the limit of "
+                           f"{settings.max_fit_detections} (DETCAL_MAX_FIT_DETECTIONS)", status=413)
+    try:
+        check_fit_input(loaded, fit_options)
+    except OptionError as exc:
+        raise RequestError(["body", exc.field], str(exc)) from None
+    return stored, gt_sha
+
+
+def _store_input(store: Store, settings: Settings, fit_options: FitOptions,
+                 dump: UploadFile | None, results: UploadFile | None, gt: UploadFile | None,
+                 dataset: str | None) -> tuple[DumpRecord, str | None, Any]:
+    """Store the one form of fit input given and load it: the stored record, the ground
+    truth's hash and the loaded dump."""
+    from calibrators.io import load_dump, load_nuscenes
+
+    if dataset is not None:
+        stored, loaded = _dataset(store, settings.datasets_dir, dataset, fit_options,
+                                  settings.max_fit_detections)
+        return stored, None, loaded
+    if dump is not None:
+        check_declared(declared_npz(dump.file), max_bytes=settings.max_dump_bytes,
+                       max_detections=settings.max_fit_detections, field="dump", what="fit")
+        stored = store.put_dump(dump.file, "npz")
+        loaded = load_upload(lambda: load_dump(store.dump_path(stored.sha256),
+                                               max_bytes=settings.max_dump_bytes), "dump")
+        return stored, None, loaded
+    _check_json_pair(results, gt, settings.max_json_dump_bytes)  # type: ignore[arg-type]
+    stored = store.put_dump(results.file, "nuscenes-results")  # type: ignore[union-attr]
+    gt_sha = store.put_dump(gt.file, "nuscenes-gt").sha256  # type: ignore[union-attr]
+    loaded = load_upload(lambda: load_nuscenes(store.dump_path(stored.sha256),
+                                               store.dump_path(gt_sha),
+                                               max_bytes=settings.max_dump_bytes), "results")
+    return stored, gt_sha, loaded
 
 
 def _check_json_pair(results: UploadFile, gt: UploadFile, limit: int) -> None:
