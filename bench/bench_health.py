@@ -20,6 +20,7 @@ import sys
 import tempfile
 import threading
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import httpx
@@ -61,16 +62,58 @@ def _poll_health(url: str, stop: threading.Event, out: list[float]) -> None:
             stop.wait(0.02)
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Run the server idle, then under load; print and record the figures."""
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--seconds", type=float, default=20.0)
-    ap.add_argument("--detections", type=int, default=20_000)
-    ap.add_argument("--clients", type=int, default=2, help="concurrent calibrate clients")
-    args = ap.parse_args(argv)
+@dataclass
+class _Figures:
+    """What one run measured: /healthz and calibrate latencies (ms) and RSS (MiB)."""
 
-    payload, profile_json = service_payload(args.detections)
-    body = json.dumps(payload, separators=(",", ":")).encode()
+    idle: list[float] = field(default_factory=list)
+    loaded: list[float] = field(default_factory=list)
+    calib: list[float] = field(default_factory=list)
+    rss_idle: float = 0.0
+    rss_warm: float = 0.0
+    rss_peak: float = 0.0
+
+
+def _poll_while(base: str, out: list[float]) -> tuple[threading.Event, threading.Thread]:
+    """A started /healthz poller appending to `out` until its event is set."""
+    stop = threading.Event()
+    poller = threading.Thread(target=_poll_health, args=(f"{base}/healthz", stop, out))
+    poller.start()
+    return stop, poller
+
+
+def _under_load(base: str, body: bytes, pid: int, args: argparse.Namespace,
+                fig: _Figures) -> None:
+    """Poll /healthz while `args.clients` clients send calibrate requests for `args.seconds`,
+    sampling the server's RSS peak."""
+    stop = threading.Event()
+    poller = threading.Thread(target=_poll_health, args=(f"{base}/healthz", stop, fig.loaded))
+
+    def load() -> None:
+        with httpx.Client(timeout=120.0) as client:
+            while not stop.is_set():
+                t0 = time.perf_counter()
+                r = client.post(f"{base}/v1/calibrate", content=body,
+                                headers={"content-type": "application/json"})
+                r.raise_for_status()
+                fig.calib.append((time.perf_counter() - t0) * 1000.0)
+
+    workers = [threading.Thread(target=load) for _ in range(args.clients)]
+    poller.start()
+    for w in workers:
+        w.start()
+    deadline = time.monotonic() + args.seconds
+    while time.monotonic() < deadline:
+        fig.rss_peak = max(fig.rss_peak, tree_rss_mb(pid))
+        time.sleep(0.05)
+    stop.set()
+    for t in (poller, *workers):
+        t.join()
+
+
+def _measure(args: argparse.Namespace, body: bytes, profile_json: str) -> _Figures:
+    """Serve detcal, poll it idle, warm it with one large request, then load it."""
+    fig = _Figures()
     with tempfile.TemporaryDirectory() as tmp:
         port = free_port()
         proc = serve_detcal(Path(tmp) / "data", profile_json, port, env={
@@ -79,51 +122,31 @@ def main(argv: list[str] | None = None) -> int:
         base = f"http://127.0.0.1:{port}"
         try:
             wait_ready(f"{base}/healthz", proc)
-            idle, loaded, calib = [], [], []
-            stop = threading.Event()
-            poller = threading.Thread(target=_poll_health, args=(f"{base}/healthz", stop, idle))
-            poller.start()
+            stop, poller = _poll_while(base, fig.idle)
             time.sleep(min(5.0, args.seconds / 4))
             stop.set()
             poller.join()
-            rss_idle = tree_rss_mb(proc.pid)
+            fig.rss_idle = tree_rss_mb(proc.pid)
             # one large request first: the calibrate worker process starts on the first one
             httpx.post(f"{base}/v1/calibrate", content=body, timeout=120.0,
                        headers={"content-type": "application/json"}).raise_for_status()
             time.sleep(1.0)
-            rss_warm = tree_rss_mb(proc.pid)
-            rss_peak = rss_warm
-            stop = threading.Event()
-            poller = threading.Thread(target=_poll_health,
-                                      args=(f"{base}/healthz", stop, loaded))
-
-            def load() -> None:
-                with httpx.Client(timeout=120.0) as client:
-                    while not stop.is_set():
-                        t0 = time.perf_counter()
-                        r = client.post(f"{base}/v1/calibrate", content=body,
-                                        headers={"content-type": "application/json"})
-                        r.raise_for_status()
-                        calib.append((time.perf_counter() - t0) * 1000.0)
-
-            workers = [threading.Thread(target=load) for _ in range(args.clients)]
-            poller.start()
-            for w in workers:
-                w.start()
-            deadline = time.monotonic() + args.seconds
-            while time.monotonic() < deadline:
-                rss_peak = max(rss_peak, tree_rss_mb(proc.pid))
-                time.sleep(0.05)
-            stop.set()
-            for t in (poller, *workers):
-                t.join()
+            fig.rss_warm = tree_rss_mb(proc.pid)
+            fig.rss_peak = fig.rss_warm
+            _under_load(base, body, proc.pid, args, fig)
         finally:
             proc.terminate()
             proc.wait(10)
+    return fig
 
+
+def _table(args: argparse.Namespace, body: bytes, fig: _Figures) -> str:
+    """The `health` section of docs/benchmarks.md."""
+    idle, loaded, calib = fig.idle, fig.loaded, fig.calib
+    rss_idle, rss_warm, rss_peak = fig.rss_idle, fig.rss_warm, fig.rss_peak
     p = {name: (float(np.percentile(v, 50)), float(np.percentile(v, 99)))
          for name, v in (("idle", idle), ("load", loaded))}
-    table = (
+    return (
         f"GET /healthz polled every 20 ms while {args.clients} client(s) send back-to-back POST "
         f"/v1/calibrate requests of {args.detections} detections each (the default "
         f"`DETCAL_MAX_DETECTIONS`; request {len(body) / 2**20:.1f} MiB) for {args.seconds:.0f} "
@@ -141,9 +164,22 @@ def main(argv: list[str] | None = None) -> int:
         f"{rss_peak:.0f} MiB under load (+{rss_peak - rss_warm:.0f} MiB over warm idle, "
         f"{(rss_peak - rss_warm) / args.clients:.0f} MiB per request in flight; target ≤ "
         f"+256 MiB a request).\n")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run the server idle, then under load; print and record the figures."""
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--detections", type=int, default=20_000)
+    ap.add_argument("--clients", type=int, default=2, help="concurrent calibrate clients")
+    args = ap.parse_args(argv)
+
+    payload, profile_json = service_payload(args.detections)
+    body = json.dumps(payload, separators=(",", ":")).encode()
+    fig = _measure(args, body, profile_json)
     from bench._report import report
 
-    return report("health", table)
+    return report("health", _table(args, body, fig))
 
 
 if __name__ == "__main__":

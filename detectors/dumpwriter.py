@@ -36,7 +36,9 @@ A detector with group regression heads also fills the optional multi-hypothesis 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -80,9 +82,33 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
     `max_detections` detections are kept per frame, by final-layer score (default: as many
     as the model has queries), decoded as `decode` says.
     """
-    from calibrators.data import Dump
     from detectors.sim import make_frame
 
+    _check_choices(gt_filter, decode, cov_source)
+    sensor = model.config.sensor
+    max_detections = max_detections or model.config.n_queries
+    seeds = [int(s) for s in seeds]
+    parts = _Parts()
+    centres = model.token_centres
+    floor = torch.eye(2) * model.token_grid.cell ** 2 / 12.0
+    for i, seed in enumerate(seeds):
+        frame = make_frame(seed, sensor)
+        points = torch.from_numpy(np.array(frame.sensor_frame.points, dtype=np.float32))
+        (det,) = list(detect(model, [points], max_detections=max_detections, decode=decode))
+        parts.add_detections(det, i)
+        if cov_source == "layers":
+            parts.covs.append(layer_covariance(det.layer_boxes.double()).numpy())
+        elif cov_source == "attention":
+            spread = attention_spread(det.attention.double(), centres.double(),
+                                      top_k=attention_top_k)
+            parts.covs.append((spread.covariance + floor.double()).numpy())
+        parts.add_ground_truth(frame, visible_gt(frame, sensor, gt_filter), i)
+        if progress is not None:
+            progress(i + 1, len(seeds))
+    return parts.dump(model, seeds, cov_source, decode)
+
+
+def _check_choices(gt_filter: str, decode: str, cov_source: str) -> None:
     if gt_filter not in GT_FILTERS:
         raise ValueError(f"gt_filter must be one of {list(GT_FILTERS)}, got {gt_filter!r}")
     if decode not in DECODINGS:
@@ -90,57 +116,65 @@ def build_dump(model: Detector, seeds: Sequence[int], cov_source: str = "layers"
     if cov_source not in DUMP_COV_SOURCES:
         raise ValueError(f"cov_source must be one of {list(DUMP_COV_SOURCES)}, "
                          f"got {cov_source!r}")
-    sensor = model.config.sensor
-    max_detections = max_detections or model.config.n_queries
-    seeds = [int(s) for s in seeds]
-    det_frame, logits, boxes, covs, hyp_boxes, hyp_scores, labels = [], [], [], [], [], [], []
-    gt_frame, gt_labels, gt_boxes = [], [], []
-    centres = model.token_centres
-    floor = torch.eye(2) * model.token_grid.cell ** 2 / 12.0
-    for i, seed in enumerate(seeds):
-        frame = make_frame(seed, sensor)
-        points = torch.from_numpy(np.array(frame.sensor_frame.points, dtype=np.float32))
-        (det,) = list(detect(model, [points], max_detections=max_detections, decode=decode))
-        labels.append(det.labels.numpy())
-        det_frame.append(np.full(len(det.scores), i, dtype=np.int64))
-        logits.append(det.layer_logits.numpy())
-        boxes.append(det.layer_boxes.numpy())
+
+
+def _cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: type) -> np.ndarray:
+    return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype=dtype)
+
+
+@dataclass
+class _Parts:
+    """The dump's arrays, one part per frame."""
+
+    det_frame: list[np.ndarray] = field(default_factory=list)
+    logits: list[np.ndarray] = field(default_factory=list)
+    boxes: list[np.ndarray] = field(default_factory=list)
+    covs: list[np.ndarray] = field(default_factory=list)
+    hyp_boxes: list[np.ndarray] = field(default_factory=list)
+    hyp_scores: list[np.ndarray] = field(default_factory=list)
+    labels: list[np.ndarray] = field(default_factory=list)
+    gt_frame: list[np.ndarray] = field(default_factory=list)
+    gt_labels: list[np.ndarray] = field(default_factory=list)
+    gt_boxes: list[np.ndarray] = field(default_factory=list)
+
+    def add_detections(self, det: Any, i: int) -> None:
+        """The detections `det` of frame `i` (all but their covariance)."""
+        self.labels.append(det.labels.numpy())
+        self.det_frame.append(np.full(len(det.scores), i, dtype=np.int64))
+        self.logits.append(det.layer_logits.numpy())
+        self.boxes.append(det.layer_boxes.numpy())
         if det.hyp_boxes is not None and det.hyp_scores is not None:
-            hyp_boxes.append(det.hyp_boxes.numpy())
-            hyp_scores.append(det.hyp_scores.numpy())
-        if cov_source == "layers":
-            covs.append(layer_covariance(det.layer_boxes.double()).numpy())
-        elif cov_source == "attention":
-            spread = attention_spread(det.attention.double(), centres.double(),
-                                      top_k=attention_top_k)
-            covs.append((spread.covariance + floor.double()).numpy())
-        keep = visible_gt(frame, sensor, gt_filter)
+            self.hyp_boxes.append(det.hyp_boxes.numpy())
+            self.hyp_scores.append(det.hyp_scores.numpy())
+
+    def add_ground_truth(self, frame: Any, keep: np.ndarray, i: int) -> None:
+        """The ground-truth boxes `keep` of `frame`, frame `i`."""
         g_boxes = np.asarray(frame.scene.boxes, dtype=np.float64).reshape(-1, 9)[keep]
-        gt_frame.append(np.full(len(g_boxes), i, dtype=np.int64))
-        gt_labels.append(np.asarray(frame.scene.labels, dtype=np.int64).reshape(-1)[keep])
-        gt_boxes.append(g_boxes)
-        if progress is not None:
-            progress(i + 1, len(seeds))
+        self.gt_frame.append(np.full(len(g_boxes), i, dtype=np.int64))
+        self.gt_labels.append(np.asarray(frame.scene.labels, dtype=np.int64).reshape(-1)[keep])
+        self.gt_boxes.append(g_boxes)
 
-    def cat(parts: list[np.ndarray], shape: tuple[int, ...], dtype: type) -> np.ndarray:
-        return np.concatenate(parts) if parts else np.zeros((0, *shape), dtype=dtype)
+    def dump(self, model: Detector, seeds: list[int], cov_source: str, decode: str):
+        """The `calibrators.Dump` of the parts (empty arrays of the right shape for none)."""
+        from calibrators.data import Dump
 
-    n_layers, n_classes = model.config.n_layers, len(model.config.classes)
-    n_groups = len(model.config.groups)
-    grouped = model.config.head == "group"
-    return Dump(
-        classes=tuple(model.config.classes), score_mode="sigmoid",
-        frame_ids=np.array([frame_id(s) for s in seeds]),
-        det_frame=cat(det_frame, (), np.int64),
-        det_logits=cat(logits, (n_layers, n_classes), np.float32),
-        det_boxes=cat(boxes, (n_layers, 9), np.float32),
-        gt_frame=cat(gt_frame, (), np.int64), gt_labels=cat(gt_labels, (), np.int64),
-        gt_boxes=cat(gt_boxes, (9,), np.float64),
-        det_cov=cat(covs, (2, 2), np.float64) if cov_source != "none" else None,
-        cov_dims=("x", "y"),
-        det_hyp_boxes=cat(hyp_boxes, (n_groups, 9), np.float32) if grouped else None,
-        det_hyp_scores=cat(hyp_scores, (n_groups,), np.float32) if grouped else None,
-        det_label=cat(labels, (), np.int64) if decode != "query" else None)
+        n_layers, n_classes = model.config.n_layers, len(model.config.classes)
+        n_groups = len(model.config.groups)
+        grouped = model.config.head == "group"
+        return Dump(
+            classes=tuple(model.config.classes), score_mode="sigmoid",
+            frame_ids=np.array([frame_id(s) for s in seeds]),
+            det_frame=_cat(self.det_frame, (), np.int64),
+            det_logits=_cat(self.logits, (n_layers, n_classes), np.float32),
+            det_boxes=_cat(self.boxes, (n_layers, 9), np.float32),
+            gt_frame=_cat(self.gt_frame, (), np.int64),
+            gt_labels=_cat(self.gt_labels, (), np.int64),
+            gt_boxes=_cat(self.gt_boxes, (9,), np.float64),
+            det_cov=_cat(self.covs, (2, 2), np.float64) if cov_source != "none" else None,
+            cov_dims=("x", "y"),
+            det_hyp_boxes=_cat(self.hyp_boxes, (n_groups, 9), np.float32) if grouped else None,
+            det_hyp_scores=_cat(self.hyp_scores, (n_groups,), np.float32) if grouped else None,
+            det_label=_cat(self.labels, (), np.int64) if decode != "query" else None)
 
 
 def write_dump(dump, out: str | Path, fmt: str = "npz") -> list[Path]:

@@ -186,6 +186,70 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
     run.mkdir(parents=True, exist_ok=True)
     ckpt_path, log_path = run / "ckpt.pt", run / "log.csv"
 
+    model, opt, device = _model_and_optimizer(cfg, model_config)
+    start, elapsed = 0, 0.0
+    if resume and ckpt_path.exists():
+        start, elapsed = _resume(ckpt_path, log_path, cfg, model, opt)
+    elif log_path.exists():
+        log_path.unlink()
+    criterion = SetCriterion(model.fine_grid, len(model.config.classes),
+                             class_group=model.class_group)
+    stepper = _Stepper(cfg, model, opt, criterion, device)
+    loader = _loader(cfg, model, SPLITS["train"], start)
+
+    bar = _progress_bar(cfg, start) if progress else None
+    new_log = not log_path.exists()
+    log_file = log_path.open("a", newline="")
+    writer = csv.DictWriter(log_file, fieldnames=LOG_FIELDS)
+    if new_log:
+        writer.writeheader()
+    try:
+        step, elapsed = _run_steps(stepper, loader, run, (log_file, writer), bar, start,
+                                   elapsed, on_step)
+    finally:
+        log_file.close()
+        if bar is not None:
+            bar.close()
+
+    final = _recent_losses(log_path)
+    out = None
+    if step >= cfg.steps:
+        out = Path(weights_out) if weights_out is not None else weights_path(cfg.sensor)
+        _save_final(model, out, cfg, step, elapsed, final)
+    return TrainResult(weights=out, checkpoint=ckpt_path, log=log_path, steps=step,
+                       wall_s=elapsed, final_losses=final)
+
+
+@dataclass
+class _Stepper:
+    """The model, its optimiser and loss on the training device: one step at a time."""
+
+    cfg: TrainConfig
+    model: Detector
+    opt: torch.optim.Optimizer
+    criterion: SetCriterion
+    device: torch.device
+
+    def __call__(self, batch: list[Any], step: int) -> tuple[float, dict[str, torch.Tensor]]:
+        """One optimisation step on `batch` at the learning rate of `step`: (lr, losses)."""
+        lr = learning_rate(self.cfg, step)
+        for group in self.opt.param_groups:
+            group["lr"] = lr
+        device = self.device
+        outputs = self.model([s.points.to(device) for s in batch], need_attention=False)
+        losses = self.criterion(outputs, [Target(s.target.labels.to(device),
+                                                 s.target.boxes.to(device)) for s in batch])
+        self.opt.zero_grad(set_to_none=True)
+        losses["loss"].backward()
+        torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.cfg.grad_clip)
+        self.opt.step()
+        return lr, losses
+
+
+def _model_and_optimizer(cfg: TrainConfig, model_config: DetectorConfig | None
+                         ) -> tuple[Detector, torch.optim.Optimizer, torch.device]:
+    """A fresh model (seeded by `cfg.seed`; on a frozen trunk with `base_weights`) on
+    `cfg.device`, its AdamW optimiser and the device."""
     torch.manual_seed(cfg.seed)
     np.random.seed(cfg.seed)
     model = Detector(model_config) if model_config is not None else \
@@ -197,38 +261,44 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
     train_mode(model, frozen_trunk=cfg.base_weights is not None)
     opt = torch.optim.AdamW([p for p in model.parameters() if p.requires_grad], lr=cfg.lr,
                             weight_decay=cfg.weight_decay)
-    start, elapsed = 0, 0.0
-    if resume and ckpt_path.exists():
-        ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
-        saved = ckpt["train_config"]
-        if saved["seed"] != cfg.seed or saved["batch_size"] != cfg.batch_size or \
-                saved.get("extra_objects") != cfg.extra_objects or \
-                saved.get("extra_fade", 0.0) != cfg.extra_fade or \
-                saved.get("scene_reuse", 1) != cfg.scene_reuse or \
-                saved.get("base_weights") != cfg.base_weights:
-            raise ValueError(f"{ckpt_path} was trained with another seed, batch size, "
-                             "object sampling (or its fade-out), scene reuse or base model; "
-                             "start fresh (--fresh) or use another run directory")
-        if ckpt.get("model_config", model.config.to_dict()) != model.config.to_dict():
-            raise ValueError(f"{ckpt_path} holds another detector architecture (head, token "
-                             "stride, widths); start fresh (--fresh) or use another run "
-                             "directory")
-        try:
-            model.load_state_dict(ckpt["model"])
-        except RuntimeError as exc:
-            raise ValueError(f"{ckpt_path} holds another detector architecture; start fresh "
-                             f"(--fresh) or use another run directory ({exc})") from None
-        opt.load_state_dict(ckpt["optimizer"])
-        torch.set_rng_state(ckpt["torch_rng"])
-        np.random.set_state(ckpt["numpy_rng"])
-        start, elapsed = int(ckpt["step"]), float(ckpt["elapsed_s"])
-        _truncate_log(log_path, start)
-    elif log_path.exists():
-        log_path.unlink()
+    return model, opt, device
 
-    criterion = SetCriterion(model.fine_grid, len(model.config.classes),
-                             class_group=model.class_group)
-    data = TrainSamples(cfg.sensor, SPLITS["train"], model.config.features,
+
+def _resume(ckpt_path: Path, log_path: Path, cfg: TrainConfig, model: Detector,
+            opt: torch.optim.Optimizer) -> tuple[int, float]:
+    """Load the checkpoint into `model`, `opt` and the RNGs and drop the log rows after it:
+    (its step, its elapsed seconds); ValueError when it is of another run or model."""
+    ckpt = torch.load(ckpt_path, map_location="cpu", weights_only=False)
+    saved = ckpt["train_config"]
+    if saved["seed"] != cfg.seed or saved["batch_size"] != cfg.batch_size or \
+            saved.get("extra_objects") != cfg.extra_objects or \
+            saved.get("extra_fade", 0.0) != cfg.extra_fade or \
+            saved.get("scene_reuse", 1) != cfg.scene_reuse or \
+            saved.get("base_weights") != cfg.base_weights:
+        raise ValueError(f"{ckpt_path} was trained with another seed, batch size, "
+                         "object sampling (or its fade-out), scene reuse or base model; "
+                         "start fresh (--fresh) or use another run directory")
+    if ckpt.get("model_config", model.config.to_dict()) != model.config.to_dict():
+        raise ValueError(f"{ckpt_path} holds another detector architecture (head, token "
+                         "stride, widths); start fresh (--fresh) or use another run "
+                         "directory")
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as exc:
+        raise ValueError(f"{ckpt_path} holds another detector architecture; start fresh "
+                         f"(--fresh) or use another run directory ({exc})") from None
+    opt.load_state_dict(ckpt["optimizer"])
+    torch.set_rng_state(ckpt["torch_rng"])
+    np.random.set_state(ckpt["numpy_rng"])
+    start, elapsed = int(ckpt["step"]), float(ckpt["elapsed_s"])
+    _truncate_log(log_path, start)
+    return start, elapsed
+
+
+def _loader(cfg: TrainConfig, model: Detector, split: Any, start: int
+            ) -> torch.utils.data.DataLoader:
+    """The batches of steps `start ..` of the training `split`."""
+    data = TrainSamples(cfg.sensor, split, model.config.features,
                         model.grid.half_extent, seed=cfg.seed,
                         n_samples=cfg.steps * cfg.batch_size,
                         extra_objects=cfg.extra_objects,
@@ -242,75 +312,63 @@ def train(cfg: TrainConfig, run_dir: str | Path | None = None, resume: bool = Tr
     # scenes during the re-augmented steps (with the low-priority worker below: 0.44 ->
     # 0.43 s per step on average). The data of step k is unchanged.
     prefetch = max(2, math.ceil(data.span / cfg.batch_size)) if cfg.scene_reuse > 1 else 2
-    loader = torch.utils.data.DataLoader(
+    return torch.utils.data.DataLoader(
         data, batch_size=cfg.batch_size, sampler=sampler, collate_fn=collate,
         num_workers=cfg.workers, worker_init_fn=_worker_init,
         persistent_workers=False, prefetch_factor=prefetch if cfg.workers else None)
 
-    bar = None
-    if progress:
-        import sys
 
-        from tqdm import tqdm
+def _progress_bar(cfg: TrainConfig, start: int) -> Any:
+    import sys
 
-        bar = tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.sensor}", unit="step",
-                   mininterval=0.5 if sys.stderr.isatty() else 30.0)
-    new_log = not log_path.exists()
-    log_file = log_path.open("a", newline="")
-    writer = csv.DictWriter(log_file, fieldnames=LOG_FIELDS)
-    if new_log:
-        writer.writeheader()
-    step = start
+    from tqdm import tqdm
+
+    return tqdm(total=cfg.steps, initial=start, desc=f"train {cfg.sensor}", unit="step",
+                mininterval=0.5 if sys.stderr.isatty() else 30.0)
+
+
+def _run_steps(stepper: _Stepper, loader: torch.utils.data.DataLoader, run: Path,
+               log: tuple[Any, csv.DictWriter], bar: Any, step: int, elapsed: float,
+               on_step: Callable[[int, dict[str, float]], None] | None) -> tuple[int, float]:
+    """Train on every batch of `loader`, logging, checkpointing and snapshotting as `cfg`
+    says: (the last step, the elapsed seconds)."""
+    cfg = stepper.cfg
+    log_file, writer = log
     t_last = time.perf_counter()
-    try:
-        for batch in loader:
-            lr = learning_rate(cfg, step)
-            for group in opt.param_groups:
-                group["lr"] = lr
-            outputs = model([s.points.to(device) for s in batch], need_attention=False)
-            losses = criterion(outputs, [Target(s.target.labels.to(device),
-                                                s.target.boxes.to(device)) for s in batch])
-            opt.zero_grad(set_to_none=True)
-            losses["loss"].backward()
-            torch.nn.utils.clip_grad_norm_(model.parameters(), cfg.grad_clip)
-            opt.step()
-            step += 1
-            now = time.perf_counter()
-            dt, t_last = now - t_last, now
-            elapsed += dt
-            row = {k: float(v.detach()) for k, v in losses.items()}
-            writer.writerow({"step": step, "lr": f"{lr:.6g}", "sec_per_step": f"{dt:.3f}",
-                             "elapsed_s": f"{elapsed:.1f}",
-                             **{k: f"{v:.5f}" for k, v in row.items()}})
-            if on_step is not None:
-                on_step(step, row)
-            if bar is not None:
-                bar.update(1)
-                bar.set_postfix(loss=f"{row['loss']:.3f}", cls=f"{row['cls_last']:.3f}",
-                                box=f"{row['box_last']:.3f}")
-            if step % cfg.ckpt_every == 0 or step == cfg.steps:
-                log_file.flush()
-                _save_checkpoint(ckpt_path, model, opt, step, cfg, elapsed)
-            if cfg.snapshot_every and step % cfg.snapshot_every == 0 and step < cfg.steps:
-                save_weights(model, run / f"step_{step}.pt",
-                             {"train_config": asdict(cfg), "steps": step})
-    finally:
-        log_file.close()
+    for batch in loader:
+        lr, losses = stepper(batch, step)
+        step += 1
+        now = time.perf_counter()
+        dt, t_last = now - t_last, now
+        elapsed += dt
+        row = {k: float(v.detach()) for k, v in losses.items()}
+        writer.writerow({"step": step, "lr": f"{lr:.6g}", "sec_per_step": f"{dt:.3f}",
+                         "elapsed_s": f"{elapsed:.1f}",
+                         **{k: f"{v:.5f}" for k, v in row.items()}})
+        if on_step is not None:
+            on_step(step, row)
         if bar is not None:
-            bar.close()
+            bar.update(1)
+            bar.set_postfix(loss=f"{row['loss']:.3f}", cls=f"{row['cls_last']:.3f}",
+                            box=f"{row['box_last']:.3f}")
+        if step % cfg.ckpt_every == 0 or step == cfg.steps:
+            log_file.flush()
+            _save_checkpoint(run / "ckpt.pt", stepper.model, stepper.opt, step, cfg, elapsed)
+        if cfg.snapshot_every and step % cfg.snapshot_every == 0 and step < cfg.steps:
+            save_weights(stepper.model, run / f"step_{step}.pt",
+                         {"train_config": asdict(cfg), "steps": step})
+    return step, elapsed
 
-    final = _recent_losses(log_path)
-    out = None
-    if step >= cfg.steps:
-        out = Path(weights_out) if weights_out is not None else weights_path(cfg.sensor)
-        meta = {"train_config": asdict(cfg), "steps": step, "wall_s": round(elapsed, 1),
-                "final_losses": final,
-                "command": f"detcal train --sensor {cfg.sensor} --steps {cfg.steps} "
-                           f"--seed {cfg.seed}"
-                           + (f" --base-weights {cfg.base_weights}" if cfg.base_weights else "")}
-        save_weights(model.eval(), out, meta)
-    return TrainResult(weights=out, checkpoint=ckpt_path, log=log_path, steps=step,
-                       wall_s=elapsed, final_losses=final)
+
+def _save_final(model: Detector, out: Path, cfg: TrainConfig, step: int, elapsed: float,
+                final: dict[str, float]) -> None:
+    """The shipped weights of a finished run, with its training metadata."""
+    meta = {"train_config": asdict(cfg), "steps": step, "wall_s": round(elapsed, 1),
+            "final_losses": final,
+            "command": f"detcal train --sensor {cfg.sensor} --steps {cfg.steps} "
+                       f"--seed {cfg.seed}"
+                       + (f" --base-weights {cfg.base_weights}" if cfg.base_weights else "")}
+    save_weights(model.eval(), out, meta)
 
 
 def _worker_init(_: int) -> None:

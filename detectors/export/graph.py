@@ -203,15 +203,8 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
         raise ExportError(f"profile must be a CalibrationProfile, got {type(profile).__name__}")
     source = profile.cov_source if cov_source is None else cov_source
     stage = _source(profile, source)
-    if layer_logits is None:
-        layer_logits = profile.modulation
-    if profile.modulation and not layer_logits:
-        raise ExportError("the profile applies logits modulation, which needs layer_logits "
-                          "[N, L, C'] (every decoder layer's logits), not final logits")
-    try:
-        wanted = [float(q) for q in check_levels(levels, "levels")]
-    except ValueError as exc:
-        raise ExportError(str(exc)) from None
+    layer_logits = _layer_logits(profile, layer_logits)
+    wanted = _levels(levels)
     softmax = profile.score_mode == "softmax"
     method, calibrator = score_stage(profile.score_calibration)
     scores = (TemperatureScores(profile.temperature, softmax) if calibrator is None
@@ -221,14 +214,8 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
               if source == "layers" else None)
     regions, groups = _regions(profile, stage, wanted, dims)
     has_xy = regions is not None
-    inputs = ["layer_logits" if layer_logits else "logits", *(["labels"] if labels else []),
-              "layer_boxes" if source == "layers" else "boxes", "ego_xy",
-              *(["covariances_raw"] if source == "given" else []),
-              *(["hyp_boxes", "hyp_scores"] if source == "hypotheses" else [])]
-    outputs = ["labels", "scores", "scores_raw",
-               *(["class_scores"] if calibrator is None else []), "distances", "covariances",
-               *(["radii", "semi_major", "semi_minor", "angle"] if has_xy else []),
-               *(["region_group"] if groups is not None else [])]
+    inputs, outputs = _io_names(source, layer_logits, labels, calibrator is None, has_xy,
+                                groups is not None)
     metadata = {
         "format": EXPORT_FORMAT, "detcal_version": detcal_version(),
         "profile_sha256": hashlib.sha256(profile.to_json().encode()).hexdigest(),
@@ -239,14 +226,7 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
         "levels": wanted if has_xy else [], "region_groups": groups,
         "labels_input": bool(labels), "inputs": inputs, "outputs": outputs,
     }
-    extra: dict[str, Any] = {}
-    cls: type[CalibrationGraph] = _LabelledGraph if labels else _Graph
-    if source == "given":
-        cls = _LabelledGraphWithCovariances if labels else _GraphWithCovariances
-    elif source == "hypotheses":
-        cls = _LabelledGraphWithHypotheses if labels else _GraphWithHypotheses
-        extra["hypotheses"] = HypothesesSpread([BOX_INDEX[d] for d in dims],
-                                               [d == "yaw" for d in dims])
+    cls, extra = _graph_class(source, labels, dims)
     return cls(scores, Modulation() if profile.modulation else None, spread,
                _scaling(profile, stage),
                EllipseAxes(dims.index("x"), dims.index("y")) if has_xy else None, regions,
@@ -255,6 +235,53 @@ def build_graph(profile: CalibrationProfile, *, cov_source: str | None = None,
                class_scores=calibrator is None, conformal=groups is not None,
                input_names=inputs, output_names=outputs,
                metadata=json.dumps(metadata, allow_nan=False), **extra)
+
+
+def _layer_logits(profile: CalibrationProfile, layer_logits: bool | None) -> bool | None:
+    """Whether the graph takes every layer's logits (default: when the profile modulates,
+    which needs them)."""
+    if layer_logits is None:
+        layer_logits = profile.modulation
+    if profile.modulation and not layer_logits:
+        raise ExportError("the profile applies logits modulation, which needs layer_logits "
+                          "[N, L, C'] (every decoder layer's logits), not final logits")
+    return layer_logits
+
+
+def _levels(levels: Sequence[float]) -> list[float]:
+    """The region levels, checked as the library checks them (`ExportError` otherwise)."""
+    try:
+        return [float(q) for q in check_levels(levels, "levels")]
+    except ValueError as exc:
+        raise ExportError(str(exc)) from None
+
+
+def _io_names(source: str, layer_logits: bool | None, labels: bool, class_scores: bool,
+              has_xy: bool, conformal: bool) -> tuple[list[str], list[str]]:
+    """The graph's input and output names, in order (module docstring)."""
+    inputs = ["layer_logits" if layer_logits else "logits", *(["labels"] if labels else []),
+              "layer_boxes" if source == "layers" else "boxes", "ego_xy",
+              *(["covariances_raw"] if source == "given" else []),
+              *(["hyp_boxes", "hyp_scores"] if source == "hypotheses" else [])]
+    outputs = ["labels", "scores", "scores_raw",
+               *(["class_scores"] if class_scores else []), "distances", "covariances",
+               *(["radii", "semi_major", "semi_minor", "angle"] if has_xy else []),
+               *(["region_group"] if conformal else [])]
+    return inputs, outputs
+
+
+def _graph_class(source: str, labels: bool, dims: tuple[str, ...]
+                 ) -> tuple[type[CalibrationGraph], dict[str, Any]]:
+    """The graph class of the inputs `source` and `labels` take, and its extra arguments."""
+    extra: dict[str, Any] = {}
+    cls: type[CalibrationGraph] = _LabelledGraph if labels else _Graph
+    if source == "given":
+        cls = _LabelledGraphWithCovariances if labels else _GraphWithCovariances
+    elif source == "hypotheses":
+        cls = _LabelledGraphWithHypotheses if labels else _GraphWithHypotheses
+        extra["hypotheses"] = HypothesesSpread([BOX_INDEX[d] for d in dims],
+                                               [d == "yaw" for d in dims])
+    return cls, extra
 
 
 def _source(profile: CalibrationProfile, source: str) -> SourceStage:
