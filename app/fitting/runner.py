@@ -28,6 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from app.fitting.datasets import DATASET_KIND, redact_paths, referenced_dataset
+from app.fitting.handoff import ParsedUploads
 from app.store import JobLostError, JobRecord, Store
 from app.store.files import InstanceLock
 from calibrators.fit import FitOptions, fit_profile
@@ -93,6 +94,7 @@ class JobRunner:
                  clean_every_s: float = 600.0, dump_grace: timedelta = timedelta(hours=1),
                  max_dump_bytes: int | None = None, datasets_dir: Path | None = None) -> None:
         self.store, self.workers, self.poll_s = store, workers, poll_s
+        self.parsed = ParsedUploads()   # dumps a fit request already parsed, by content hash
         self.max_dump_bytes = max_dump_bytes
         self.datasets_dir = datasets_dir
         self.heartbeat_s, self.stale_after = heartbeat_s, stale_after
@@ -213,7 +215,9 @@ class JobRunner:
             progress("fitting", 0.0)
             return fit_profile_stream(path, FitOptions.from_dict(job.options),
                                       progress=progress)
-        dump = load_job_dump(self.store, job, self.max_dump_bytes)
+        dump = self.parsed.take((job.dump_sha256, job.gt_sha256))
+        if dump is None:
+            dump = load_job_dump(self.store, job, self.max_dump_bytes)
         progress("fitting", 0.0)
         return fit_profile(dump, FitOptions.from_dict(job.options),
                            dump_sha256=job.dump_sha256, progress=progress)

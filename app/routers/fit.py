@@ -61,7 +61,10 @@ def fit(
     _check_forms(dump, results, gt, dataset)
     profile_name = name or settings.default_profile
     fit_options = _fit_options(options)
-    stored, gt_sha = _store_checked(store, settings, fit_options, dump, results, gt, dataset)
+    stored, gt_sha, parsed = _store_checked(store, settings, fit_options, dump, results, gt,
+                                            dataset)
+    if parsed is not None:   # the job fits this very parse (app.fitting.handoff)
+        runner.parsed.put((stored.sha256, gt_sha), parsed)
     audit = AuditEntry("fit", profile_name, token, {"dump_sha256": stored.sha256,
                                                     "activate": activate})
     job = store.create_job(profile_name, fit_options.to_dict(), stored.sha256, gt_sha, activate,
@@ -92,10 +95,10 @@ def _fit_options(options: FitForm) -> FitOptions:
 
 def _store_checked(store: Store, settings: Settings, fit_options: FitOptions,
                    dump: UploadFile | None, results: UploadFile | None, gt: UploadFile | None,
-                   dataset: str | None) -> tuple[DumpRecord, str | None]:
-    """Store the fit input and check it loads and fits `fit_options`: its stored record and
-    the ground truth's hash (None but for nuScenes JSON). The loaded dump is freed on return,
-    before the job loads its own copy (one dump in memory)."""
+                   dataset: str | None) -> tuple[DumpRecord, str | None, Any]:
+    """Store the fit input and check it loads and fits `fit_options`: its stored record, the
+    ground truth's hash (None but for nuScenes JSON) and the checked dump the job is to fit
+    (None for a dataset, which the job reads part by part)."""
     stored, gt_sha, loaded = _store_input(store, settings, fit_options, dump, results, gt,
                                           dataset)
     if max(loaded.n_detections, len(loaded.gt_labels)) > settings.max_fit_detections:
@@ -107,7 +110,7 @@ def _store_checked(store: Store, settings: Settings, fit_options: FitOptions,
         check_fit_input(loaded, fit_options)
     except OptionError as exc:
         raise RequestError(["body", exc.field], str(exc)) from None
-    return stored, gt_sha
+    return stored, gt_sha, None if dataset is not None else loaded
 
 
 def _store_input(store: Store, settings: Settings, fit_options: FitOptions,
