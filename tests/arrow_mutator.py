@@ -1,5 +1,5 @@
 """Hostile Arrow IPC streams for the binary calibrate path: valid request streams built from a
-dump (as tests/app/test_calibrate_arrow.py builds them), a seeded mutator that corrupts them
+dump (as tests/app/calibrate/test_arrow.py builds them), a seeded mutator that corrupts them
 where Arrow readers trust the writer (offsets, buffer offsets and lengths, field-node and row
 counts, dictionary indices, compression length prefixes, codec bytes, raw bytes, truncation),
 and the issue-25 bombs and 500s.

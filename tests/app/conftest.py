@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -36,6 +37,23 @@ def profile_json_given(dump_given) -> str:
 def profile_json_layers(dump_given) -> str:
     """Profile JSON fit on `dump_given` with the spread across decoder layers only."""
     return fit_profile(dump_given, cov_source="layers", other_sources=False).to_json()
+
+
+@pytest.fixture(scope="session")
+def conformal_json(dump_given) -> str:
+    """Conformal regions with groups of >= 30 calibration points: 0.999 is out of reach."""
+    return fit_profile(dump_given, cov_source="given", region_method="conformal",
+                       min_group=30).to_json()
+
+
+@pytest.fixture(scope="session")
+def thesis_json(dump_given) -> str:
+    """A thesis-method fit (global T, Σ + k·d·I, Gaussian regions), written as version 1."""
+    text = fit_profile(dump_given, cov_source="given", score_method="temperature",
+                       cov_method="depth", region_method="gaussian",
+                       other_sources=False).to_json()
+    assert json.loads(text)["schema_version"] == 1
+    return text
 
 
 @pytest.fixture

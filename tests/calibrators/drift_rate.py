@@ -10,7 +10,7 @@ the conformal radii), then feeds the same `DriftMonitor` rule
     python -m tests.calibrators.drift_rate --runs 100      # the figures in docs/production.md
     python -m tests.calibrators.drift_rate --runs 30 --frames 10 --shift 2 --shifted-frames 400
 
-`tests/calibrators/test_drift.py` runs a few of these runs.
+`tests/calibrators/monitoring/test_drift.py` runs a few of these runs.
 """
 
 from __future__ import annotations

@@ -22,7 +22,8 @@ from calibrators.data import Dump, synthetic_dump
 from calibrators.profile import CalibratedDetections
 
 SHIPPED_DUMP = Path(detectors.__file__).parent / "data" / "lidar_val.npz"
-V1_PROFILE = Path(__file__).parents[1] / "calibrators" / "data" / "profile_v1.json"
+V1_PROFILE = (Path(__file__).parents[1] / "calibrators" / "profile" / "data"
+              / "profile_v1.json")
 LEVELS = (0.5, 0.9, 0.95)
 #: Frames of the shipped detectors' dumps (radar1 takes ~0.6 s a frame).
 DETECTOR_FRAMES = 4
