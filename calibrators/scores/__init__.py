@@ -47,6 +47,7 @@ from calibrators.scores._temperature_nll import (
     row_max,
     sigmoid_nll,
     softmax_mean,
+    softmax_nll,
 )
 
 __all__ = ["SCORE_CALIBRATION_METHODS", "SIGMOID_BINS", "SUBSAMPLE_MIN", "ClassTemperatureScaler",
@@ -55,4 +56,4 @@ __all__ = ["SCORE_CALIBRATION_METHODS", "SIGMOID_BINS", "SUBSAMPLE_MIN", "ClassT
            "isotonic_knots", "label_logit", "label_scores", "make_score_calibrator",
            "modulate_logits", "monotone_knots", "predict", "probabilities_logits",
            "probability_logit", "row_max", "score_calibrator_from_dict", "sigmoid_nll",
-           "softmax_mean", "subsample_rows", "subsample_start"]
+           "softmax_mean", "softmax_nll", "subsample_rows", "subsample_start"]

@@ -7,16 +7,18 @@ import pytest
 
 from calibrators.core.checks import class_codes
 from calibrators.core.errors import NotFittedError
-from calibrators.covariance import DepthScaler, add_depth_term
-from calibrators.covariance._depth_nll import (
+from calibrators.covariance import (
     MANTISSA_BITS,
     OCTAVES,
+    DepthScaler,
     DepthTerms,
+    add_depth_term,
+    brent_k,
     depth_bins,
     log_bin,
+    spectral,
+    spectral_2x2,
 )
-from calibrators.covariance._depth_search import brent_k
-from calibrators.covariance._spectral import spectral, spectral_2x2
 
 K_TRUE = {"car": 0.02, "pedestrian": 0.08, "barrier": 0.3}
 

@@ -5,9 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from calibrators.covariance import _depth_nll as depth_nll
-from calibrators.covariance import _spectral
-from calibrators.covariance._depth_nll import BinSums, DepthTerms, log_bin_low
+# The block sizes patched below (`_CHUNK`, `_BLOCK`) are globals of these private modules, read
+# at call time: the modules are imported for that alone (allowed in tests/test_imports.py).
+import calibrators.covariance._depth_nll as depth_nll
+import calibrators.covariance._spectral as _spectral
+from calibrators.covariance import BinSums, DepthTerms, log_bin_low, spectral_2x2
 
 
 def psd_2x2(rng: np.random.Generator, n: int, huge: bool = True) -> np.ndarray:
@@ -44,9 +46,9 @@ def test_blocks_of_the_closed_form_2x2_equal_one_block(monkeypatch):
     rng = np.random.default_rng(0)
     cov, r = psd_2x2(rng, 200), rng.normal(size=(200, 2))
     r[::13] *= 1e70
-    whole = _spectral.spectral_2x2(cov, r)
+    whole = spectral_2x2(cov, r)
     monkeypatch.setattr(_spectral, "_BLOCK", 7)
-    blocks = _spectral.spectral_2x2(cov, r)
+    blocks = spectral_2x2(cov, r)
     for x, y in zip(whole, blocks, strict=True):
         np.testing.assert_array_equal(x, y)
 
@@ -65,7 +67,7 @@ def test_blocks_name_the_row_one_block_would(monkeypatch, psd_row, asym_row, mat
         cov[asym_row, 0, 1] += 0.5
     monkeypatch.setattr(_spectral, "_BLOCK", 5)
     with pytest.raises(ValueError, match=match):
-        _spectral.spectral_2x2(cov, r)
+        spectral_2x2(cov, r)
 
 
 @pytest.mark.parametrize("near", [True, False])

@@ -8,8 +8,7 @@ import numpy as np
 import pytest
 from scipy.optimize import minimize_scalar
 
-from calibrators.covariance import DepthScaler
-from calibrators.covariance._depth_nll import DepthTerms
+from calibrators.covariance import DepthScaler, DepthTerms
 
 
 @pytest.mark.parametrize("k_true", [1e-4, 1e-3, 1e-2, 1e-1, 1.0])

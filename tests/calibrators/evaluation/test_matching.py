@@ -1,10 +1,12 @@
-"""calibrators.evaluation._matching: the nuScenes devkit's greedy matching rule, case by case."""
+"""calibrators.evaluation.match: the nuScenes devkit's greedy matching rule, case by case."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
+# `DENSE_PAIR_LIMIT`, patched below, is a global of this private module read at call time: the
+# module is imported for that alone (allowed in tests/test_imports.py).
 import calibrators.evaluation._matching as matching
 from calibrators.evaluation import DEFAULT_CLASS_RANGE, MatchResult, in_range, match
 

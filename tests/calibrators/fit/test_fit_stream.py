@@ -6,15 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+# `SUBSAMPLE_MIN` and `_SUBSAMPLE_ROWS`, patched below, are globals of these private modules read
+# at call time: the modules are imported for that alone (allowed in tests/test_imports.py).
+import calibrators.fit._stream as fit_stream
 import calibrators.scores._temperature as temperature
 from calibrators.core.errors import OptionError
-from calibrators.covariance import fit_inputs
-from calibrators.covariance._depth_nll import BinSums, depth_bins
+from calibrators.covariance import BinSums, depth_bins, fit_inputs
 from calibrators.data import synthetic_dump
 from calibrators.fit import FitOptions, check_stream_options, fit_profile, fit_profile_stream
-from calibrators.fit import _stream as fit_stream
 from calibrators.io import load_parquet, save_parquet
-from calibrators.scores import SigmoidBins
+from calibrators.scores import SIGMOID_BINS, SigmoidBins
 
 THESIS = {"score_method": "temperature", "cov_method": "depth", "region_method": "gaussian"}
 
@@ -78,7 +79,7 @@ def assert_close_tree(a, b, path="report"):
 
 def test_binned_sigmoid_path_equals_the_in_memory_fit(tmp_path):
     dump = synthetic_dump(n_frames=360, n_gt_per_frame=100, seed=9, n_layers=1)
-    assert dump.n_detections > temperature.SIGMOID_BINS   # the binned search is used
+    assert dump.n_detections > SIGMOID_BINS   # the binned search is used
     streamed, in_memory = fit_both(tmp_path, dump, rows_per_part=20_000, calibration=0.0,
                                    other_sources=False)
     assert_same_profile(streamed, in_memory)

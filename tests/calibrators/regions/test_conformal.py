@@ -11,6 +11,9 @@ import pytest
 
 from calibrators.core.errors import NotFittedError
 from calibrators.regions import ConformalRegions
+
+# `_stored_ranks` (the ranks a group keeps) has no public name yet: allowed in
+# tests/test_imports.py until calibrators/regions/_conformal.py names it `stored_ranks`.
 from calibrators.regions._conformal import _stored_ranks
 
 LEVELS = np.array([0.5, 0.9, 0.95, 0.99])

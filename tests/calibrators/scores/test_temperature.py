@@ -7,14 +7,19 @@ import pytest
 from scipy.optimize import minimize_scalar
 from scipy.special import expit, log_expit, logsumexp, softmax
 
+# `_NEWTON_MARGIN`, patched below, is a global of this private module read at call time: the
+# module is imported for that alone (allowed in tests/test_imports.py).
 import calibrators.scores._temperature as temperature
 from calibrators.core.errors import NotFittedError
-from calibrators.scores import SIGMOID_BINS, SUBSAMPLE_MIN, TemperatureScaler, class_probabilities
-from calibrators.scores._temperature import (
-    _binned_sigmoid_nll,
-    _sigmoid_nll,
-    _sigmoid_nll_1d,
-    _softmax_nll,
+from calibrators.scores import (
+    SIGMOID_BINS,
+    SUBSAMPLE_MIN,
+    SigmoidBins,
+    TemperatureScaler,
+    class_probabilities,
+    row_max,
+    sigmoid_nll,
+    softmax_nll,
 )
 
 N = 100_000
@@ -48,7 +53,7 @@ def test_sigmoid_recovers_temperature(t_true):
     scaler = TemperatureScaler(mode="sigmoid").fit(z, y)
     assert scaler.temperature_ == pytest.approx(t_true, rel=0.01)
     assert scaler.n_samples_ == N
-    assert scaler.nll_ <= _sigmoid_nll(z, y)(0.0)   # no worse than T = 1
+    assert scaler.nll_ <= sigmoid_nll(row_max(z), y)(0.0)   # no worse than T = 1
 
 
 @pytest.mark.parametrize("t_true", [0.6, 1.7])
@@ -85,9 +90,9 @@ def test_objectives_match_direct_formulas():
     for t in (0.05, 1.0, 7.0):
         s = z.max(axis=1) / t
         ref = -np.mean(np.where(y01 == 1, log_expit(s), log_expit(-s)))
-        assert _sigmoid_nll(z, y01)(np.log(t)) == pytest.approx(ref, rel=1e-9)
+        assert sigmoid_nll(row_max(z), y01)(np.log(t)) == pytest.approx(ref, rel=1e-9)
         ref = np.mean(logsumexp(z / t, axis=1) - z[np.arange(200), ycol] / t)
-        assert _softmax_nll(z, ycol)(np.log(t)) == pytest.approx(ref, rel=1e-9)
+        assert softmax_nll(z, ycol)(np.log(t)) == pytest.approx(ref, rel=1e-9)
 
 
 @pytest.mark.parametrize("mode", ["sigmoid", "softmax"])
@@ -174,7 +179,7 @@ def test_binned_sigmoid_fit_equals_the_exact_minimiser(seed, scale, shift):
     z = rng.standard_t(3, size=(n, 4)) * scale + shift  # heavy tails stretch the bins
     y = (rng.random(n) < expit(z.max(axis=1) / 1.3)).astype(np.int64)
     scaler = TemperatureScaler().fit(z, y)
-    exact = _sigmoid_nll(z, y)
+    exact = sigmoid_nll(row_max(z), y)
     assert scaler.temperature_ == pytest.approx(exact_temperature(exact), rel=1e-6)
     assert scaler.nll_ == pytest.approx(exact(np.log(scaler.temperature_)), rel=1e-9)
 
@@ -184,21 +189,21 @@ def test_binned_sigmoid_nll_error_is_within_its_bound():
     s = rng.normal(0.0, 4.0, 50_000)
     y = rng.integers(0, 2, 50_000)
     n_bins = 1024  # coarse, so the error is measurable
-    binned, exact = _binned_sigmoid_nll(s, y, n_bins), _sigmoid_nll_1d(s, y)
+    binned, exact = SigmoidBins.from_logits(s, y, n_bins).objective(), sigmoid_nll(s, y)
     h = np.ptp(s) / n_bins
     for t in (0.3, 1.0, 4.0):
         error = abs(binned(np.log(t)) - exact(np.log(t)))
         assert 0 < error <= (h / t) ** 3 / 48
     same = np.full(10, 2.5)  # zero span: one bin, exact
-    assert _binned_sigmoid_nll(same, y[:10])(0.3) == pytest.approx(
-        _sigmoid_nll_1d(same, y[:10])(0.3), rel=1e-14)
+    assert SigmoidBins.from_logits(same, y[:10]).objective()(0.3) == pytest.approx(
+        sigmoid_nll(same, y[:10])(0.3), rel=1e-14)
 
 
 @pytest.mark.parametrize("t_true", [0.4, 1.5, 6.0])
 def test_softmax_subsample_bracket_fit_equals_the_exact_minimiser(t_true):
     z, y = softmax_sample(t_true, n=SUBSAMPLE_MIN, n_classes=6, seed=5)
     scaler = TemperatureScaler(mode="softmax").fit(z, y)
-    exact = exact_temperature(_softmax_nll(z, y))
+    exact = exact_temperature(softmax_nll(z, y))
     assert scaler.temperature_ == pytest.approx(exact, rel=1e-6)
     assert scaler.temperature_ == pytest.approx(t_true, rel=0.02)
 
@@ -209,7 +214,7 @@ def test_softmax_bracket_that_misses_is_searched_again(monkeypatch):
     # a first bracket far shorter than the Newton step: the root lies beyond its edge
     monkeypatch.setattr(temperature, "_NEWTON_MARGIN", 1e-4)
     again = TemperatureScaler(mode="softmax").fit(z, y)
-    exact = exact_temperature(_softmax_nll(z, y))
+    exact = exact_temperature(softmax_nll(z, y))
     assert again.temperature_ == pytest.approx(exact, rel=1e-6)
     assert full.temperature_ == pytest.approx(exact, rel=1e-6)
     assert again.n_evaluations_ > full.n_evaluations_
