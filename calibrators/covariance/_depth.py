@@ -26,6 +26,7 @@ import numpy as np
 
 from calibrators.core.checks import (
     as_float_array,
+    as_int_array,
     check_bounds,
     check_covariances,
     check_distances,
@@ -34,6 +35,7 @@ from calibrators.core.checks import (
     class_codes,
 )
 from calibrators.core.errors import FieldError
+from calibrators.core.json_safe import to_jsonable
 from calibrators.covariance._depth_nll import DepthBins, DepthTerms, depth_bins
 from calibrators.covariance._depth_search import fit_k
 
@@ -52,6 +54,7 @@ class DepthScaler:
     Attributes set by `fit`: `k_` (dict class -> k), `pooled_k_`, `fallback_classes_` (classes
     that took `pooled_k_`), `n_samples_` (dict class -> count), `n_dims_` (D), `nll_` (dict
     class -> mean NLL at its own k, None for fallback classes), `pooled_nll_`.
+    `to_dict()` / `from_dict` as `ShrinkageDepthScaler`'s, without `s`.
     """
 
     def __init__(self, min_samples: int = 50, bounds: tuple[float, float] = (0.0, 25.0),
@@ -117,6 +120,66 @@ class DepthScaler:
         d, cov, k = transform_inputs(self, covariances, distances, classes)
         base = np.zeros((d.shape[0], self.n_dims_, self.n_dims_)) if cov is None else cov
         return add_depth_term(base, d, k)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Strict-JSON-able plain dict; `from_dict(to_dict())` transforms identically."""
+        return depth_dict(self, {"min_samples": self.min_samples, "bounds": self.bounds,
+                                 "xtol": self.xtol})
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> DepthScaler:
+        """The fitted scaler `to_dict` wrote; ValueError naming a missing or bad key."""
+        return depth_from_dict(cls, data, "depth scaler", ("k",))
+
+
+def depth_dict(scaler: Any, hyper: dict[str, Any], tables: tuple[str, ...] = ("k",)
+               ) -> dict[str, Any]:
+    """The strict-JSON-able dict of a fitted depth-type scaler: `hyper`, its `classes` and,
+    in their order, each per-class table of `tables` (`k`; shrinkage: `s`, `k`) with its
+    pooled value, `fallback_classes`, `n_samples`, `n_dims`, `nll` and `pooled_nll`."""
+    check_fitted(scaler, "k_")
+    keys = list(scaler.k_)
+    out: dict[str, Any] = {"hyper": hyper, "classes": keys}
+    out.update({name: [getattr(scaler, f"{name}_")[c] for c in keys] for name in tables})
+    out.update({f"pooled_{name}": getattr(scaler, f"pooled_{name}_") for name in tables})
+    out.update(fallback_classes=scaler.fallback_classes_, n_samples=[
+        scaler.n_samples_[c] for c in keys], n_dims=scaler.n_dims_,
+        nll=[scaler.nll_[c] for c in keys], pooled_nll=scaler.pooled_nll_)
+    return to_jsonable(out)
+
+
+def depth_from_dict(cls: Any, data: dict[str, Any], what: str, tables: tuple[str, ...]) -> Any:
+    """The fitted depth-type scaler `cls` that `depth_dict` wrote (`what` names it in
+    errors): a ValueError names a missing or bad key; `s` must be > 0 and `k` >= 0."""
+    if not isinstance(data, dict):
+        raise ValueError(f"a {what} must be a dict, got {type(data).__name__}")
+    pooled = tuple(f"pooled_{name}" for name in tables)
+    missing = [k for k in ("hyper", "classes", *tables, *pooled, "fallback_classes",
+                           "n_samples", "n_dims") if k not in data]
+    if missing:
+        raise ValueError(f"{what} dict lacks {missing[0]!r}")
+    hyper = {k: tuple(v) if isinstance(v, list) else v for k, v in data["hyper"].items()}
+    try:
+        self = cls(**hyper)
+    except TypeError as exc:
+        raise ValueError(f"hyper has a bad key: {exc}") from None
+    keys = list(data["classes"])
+    arrays = {name: as_float_array(name, data[name], ndim=1) for name in tables}
+    n_samples = as_int_array("n_samples", data["n_samples"])
+    for name, arr in (*arrays.items(), ("n_samples", n_samples)):
+        if arr.shape[0] != len(keys):
+            raise ValueError(f"{name} has {arr.shape[0]} entries but classes has {len(keys)}")
+    if (arrays.get("s", np.ones(1)) <= 0).any() or (arrays["k"] < 0).any():
+        raise ValueError("k must be >= 0 (and s > 0) for every class")
+    for name, key in zip(tables, pooled, strict=True):
+        setattr(self, f"{name}_", dict(zip(keys, arrays[name].tolist(), strict=True)))
+        setattr(self, f"{key}_", float(as_float_array(key, data[key], ndim=0)))
+    self.fallback_classes_ = list(data["fallback_classes"])
+    self.n_samples_ = dict(zip(keys, n_samples.tolist(), strict=True))
+    self.n_dims_ = int(data["n_dims"])
+    self.nll_ = dict(zip(keys, data.get("nll") or [None] * len(keys), strict=True))
+    self.pooled_nll_ = data.get("pooled_nll")
+    return self
 
 
 def fit_inputs(residuals: np.ndarray, covariances: np.ndarray | None, distances: np.ndarray,

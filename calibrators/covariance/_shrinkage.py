@@ -25,15 +25,18 @@ import numpy as np
 from scipy.optimize import minimize_scalar
 
 from calibrators.core.checks import (
-    as_float_array,
-    as_int_array,
     check_bounds,
-    check_fitted,
     check_min_samples,
 )
 from calibrators.core.errors import FieldError
-from calibrators.core.json_safe import to_jsonable
-from calibrators.covariance._depth import add_depth_term, fit_inputs, per_row, transform_inputs
+from calibrators.covariance._depth import (
+    add_depth_term,
+    depth_dict,
+    depth_from_dict,
+    fit_inputs,
+    per_row,
+    transform_inputs,
+)
 from calibrators.covariance._depth_nll import DepthBins, DepthTerms, depth_bins
 from calibrators.covariance._depth_search import fit_k
 
@@ -107,53 +110,14 @@ class ShrinkageDepthScaler:
 
     def to_dict(self) -> dict[str, Any]:
         """Strict-JSON-able plain dict; `from_dict(to_dict())` transforms identically."""
-        check_fitted(self, "k_")
-        keys = list(self.k_)
-        return to_jsonable({
-            "hyper": {"min_samples": self.min_samples, "bounds": self.bounds,
-                      "scale_bounds": self.scale_bounds, "xtol": self.xtol},
-            "classes": keys, "s": [self.s_[c] for c in keys], "k": [self.k_[c] for c in keys],
-            "pooled_s": self.pooled_s_, "pooled_k": self.pooled_k_,
-            "fallback_classes": self.fallback_classes_,
-            "n_samples": [self.n_samples_[c] for c in keys], "n_dims": self.n_dims_,
-            "nll": [self.nll_[c] for c in keys], "pooled_nll": self.pooled_nll_,
-        })
+        return depth_dict(self, {"min_samples": self.min_samples, "bounds": self.bounds,
+                                 "scale_bounds": self.scale_bounds, "xtol": self.xtol},
+                          ("s", "k"))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> ShrinkageDepthScaler:
         """The fitted scaler `to_dict` wrote; ValueError naming a missing or bad key."""
-        if not isinstance(data, dict):
-            raise ValueError(f"a shrinkage scaler must be a dict, got {type(data).__name__}")
-        missing = [k for k in ("hyper", "classes", "s", "k", "pooled_s", "pooled_k",
-                               "fallback_classes", "n_samples", "n_dims") if k not in data]
-        if missing:
-            raise ValueError(f"shrinkage scaler dict lacks {missing[0]!r}")
-        hyper = {k: tuple(v) if isinstance(v, list) else v for k, v in data["hyper"].items()}
-        try:
-            self = cls(**hyper)
-        except TypeError as exc:
-            raise ValueError(f"hyper has a bad key: {exc}") from None
-        keys = list(data["classes"])
-        s = as_float_array("s", data["s"], ndim=1)
-        k = as_float_array("k", data["k"], ndim=1)
-        n_samples = as_int_array("n_samples", data["n_samples"])
-        for name, arr in (("s", s), ("k", k), ("n_samples", n_samples)):
-            if arr.shape[0] != len(keys):
-                raise ValueError(f"{name} has {arr.shape[0]} entries but classes has "
-                                 f"{len(keys)}")
-        if (s <= 0).any() or (k < 0).any():
-            raise ValueError("s must be > 0 and k >= 0 for every class")
-        self.s_ = dict(zip(keys, s.tolist(), strict=True))
-        self.k_ = dict(zip(keys, k.tolist(), strict=True))
-        self.pooled_s_ = float(as_float_array("pooled_s", data["pooled_s"], ndim=0))
-        self.pooled_k_ = float(as_float_array("pooled_k", data["pooled_k"], ndim=0))
-        self.fallback_classes_ = list(data["fallback_classes"])
-        self.n_samples_ = dict(zip(keys, n_samples.tolist(), strict=True))
-        self.n_dims_ = int(data["n_dims"])
-        nll = data.get("nll") or [None] * len(keys)
-        self.nll_ = dict(zip(keys, nll, strict=True))
-        self.pooled_nll_ = data.get("pooled_nll")
-        return self
+        return depth_from_dict(cls, data, "shrinkage scaler", ("s", "k"))
 
 
 @dataclasses.dataclass(frozen=True)

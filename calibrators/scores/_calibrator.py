@@ -8,7 +8,7 @@ A subclass names its `method`, its hyper-parameters (`_hyper`), and two small fu
 
 from __future__ import annotations
 
-from typing import Any, ClassVar, Self
+from typing import Any, ClassVar, Self, TypeVar
 
 import numpy as np
 
@@ -25,6 +25,7 @@ from calibrators.core.checks import (
 from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
 
+_T = TypeVar("_T")
 
 class ClasswiseCalibrator:
     """Base of the per-class score calibrators (see the module docstring).
@@ -126,27 +127,21 @@ class ClasswiseCalibrator:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> Self:
         """The fitted calibrator `to_dict` wrote; ValueError naming a missing or bad key."""
-        if not isinstance(data, dict):
-            raise ValueError(f"a score calibrator must be a dict, got {type(data).__name__}")
-        hyper = dict(_key(data, "hyper"))
-        try:
-            self = cls(**{name: _restore(value) for name, value in hyper.items()})
-        except TypeError as exc:
-            raise ValueError(f"hyper has a bad key: {exc}") from None
-        if self.method_name != _key(data, "method"):
+        self = unfitted(cls, data, "score calibrator")
+        if self.method_name != dict_key(data, "method"):
             raise ValueError(f"method is {data['method']!r} but {cls.__name__} with these "
                              f"hyper-parameters is {self.method_name!r}")
-        c = check_n_bins("n_classes", _key(data, "n_classes"), minimum=1)
-        pooled = self._param_array("pooled", _key(data, "pooled"))
-        entries = _key(data, "classes")
+        c = check_n_bins("n_classes", dict_key(data, "n_classes"), minimum=1)
+        pooled = self._param_array("pooled", dict_key(data, "pooled"))
+        entries = dict_key(data, "classes")
         if not isinstance(entries, list) or len(entries) != c:
             raise ValueError(f"classes must list {c} entries (n_classes), got {entries!r:.80}")
         self.params_ = [pooled if p is None else self._param_array(f"classes[{k}]", p)
                         for k, p in enumerate(entries)]
         self.fallback_classes_ = [k for k, p in enumerate(entries) if p is None]
         self.n_classes_, self.pooled_params_ = c, pooled
-        self.n_samples_ = as_int_array("n_samples", _key(data, "n_samples"))
-        self.n_positives_ = as_int_array("n_positives", _key(data, "n_positives"))
+        self.n_samples_ = as_int_array("n_samples", dict_key(data, "n_samples"))
+        self.n_positives_ = as_int_array("n_positives", dict_key(data, "n_positives"))
         self._derive()
         return self
 
@@ -194,12 +189,21 @@ def _rows_by_class(labels: np.ndarray, n_classes: int) -> list[np.ndarray]:
     return [order[bounds[k]:bounds[k + 1]] for k in range(n_classes)]
 
 
-def _key(data: dict[str, Any], key: str) -> Any:
+def dict_key(data: dict[str, Any], key: str, what: str = "score calibrator") -> Any:
+    """`data[key]` of the dict form of a `what`; ValueError naming a missing key."""
     if key not in data:
-        raise ValueError(f"score calibrator dict lacks {key!r}")
+        raise ValueError(f"{what} dict lacks {key!r}")
     return data[key]
 
 
-def _restore(value: Any) -> Any:
-    """A hyper-parameter as `__init__` takes it: JSON lists back to tuples."""
-    return tuple(value) if isinstance(value, list) else value
+def unfitted(cls: type[_T], data: Any, what: str) -> _T:
+    """A new, unfitted `cls` with the hyper-parameters of `data`, the dict form of a `what`
+    (`data["hyper"]`, JSON lists back to tuples); ValueError when `data` is not a dict, lacks
+    `hyper` or has one `cls` does not take. `from_dict` then sets the fitted attributes."""
+    if not isinstance(data, dict):
+        raise ValueError(f"a {what} must be a dict, got {type(data).__name__}")
+    hyper = dict(dict_key(data, "hyper", what))
+    try:
+        return cls(**{name: tuple(v) if isinstance(v, list) else v for name, v in hyper.items()})
+    except TypeError as exc:
+        raise ValueError(f"hyper has a bad key: {exc}") from None

@@ -38,6 +38,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import brentq
 
+from calibrators.core.bins import check_n_bins
 from calibrators.core.checks import (
     as_float_array,
     as_int_array,
@@ -47,8 +48,11 @@ from calibrators.core.checks import (
     check_fitted,
     check_index,
     check_length,
+    check_positive,
 )
+from calibrators.core.json_safe import to_jsonable
 from calibrators.core.vocab import SCORE_MODES
+from calibrators.scores._calibrator import dict_key, unfitted
 from calibrators.scores._probabilities import class_probabilities
 from calibrators.scores._temperature_nll import (
     SIGMOID_BINS,
@@ -71,6 +75,7 @@ _COARSEN = 64  # sigmoid: the first search runs on bins this many times as wide
 _COARSE_XTOL = 1e-3  # Brent tolerance on log T of that first search
 _ROOT_SHARE = 0.1  # sigmoid: the bins' error may move the root by this much of xtol at most
 _NLL_RTOL = 1e-9  # sigmoid: the reported NLL is the bins' where their error is below this
+_FITTED = ("temperature", "n_samples", "n_columns", "nll", "n_evaluations")  # of `to_dict`
 
 
 class TemperatureScaler:
@@ -210,6 +215,26 @@ class TemperatureScaler:
     def fit_transform(self, logits: np.ndarray, labels: np.ndarray) -> np.ndarray:
         """`fit(logits, labels).transform(logits)`."""
         return self.fit(logits, labels).transform(logits)
+
+    def to_dict(self) -> dict:
+        """Strict-JSON-able plain dict; `from_dict(to_dict())` transforms identically."""
+        check_fitted(self, "temperature_")
+        hyper = {"mode": self.mode, "bounds": self.bounds, "xtol": self.xtol}
+        return to_jsonable({"method": "temperature", "hyper": hyper,
+                            **{key: getattr(self, f"{key}_") for key in _FITTED}})
+
+    @classmethod
+    def from_dict(cls, data: dict) -> TemperatureScaler:
+        """The fitted scaler `to_dict` wrote; ValueError naming a missing or bad key."""
+        self = unfitted(cls, data, "temperature scaler")
+        got = {key: dict_key(data, key, "temperature scaler") for key in ("method", *_FITTED)}
+        check_choice("method", got["method"], ("temperature",))
+        check_choice("mode", self.mode, SCORE_MODES)
+        self.temperature_ = check_positive("temperature", got["temperature"])
+        for key in ("n_samples", "n_columns", "n_evaluations"):
+            setattr(self, f"{key}_", check_n_bins(key, got[key], minimum=0))
+        self.nll_ = float("nan") if got["nll"] is None else float(got["nll"])
+        return self
 
 
 def _validate(logits: np.ndarray, labels: np.ndarray, mode: str
@@ -360,9 +385,7 @@ def subsample_start(z_sub: np.ndarray, y_sub: np.ndarray, bounds: tuple[float, f
     return sub.log_t, sub.curvature
 
 # The objectives under their historical names (the tests and benchmarks use them).
-_row_max = row_max
-_sigmoid_nll_1d = sigmoid_nll
-_softmax_nll = softmax_nll
+_row_max, _sigmoid_nll_1d, _softmax_nll = row_max, sigmoid_nll, softmax_nll
 
 
 def _sigmoid_nll(z: np.ndarray, y: np.ndarray) -> Objective:
