@@ -12,12 +12,13 @@ radii keep their finite-sample guarantee. `gaussian` keeps the χ²₂ radii.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 
 from calibrators import metrics
+from calibrators.core.json_safe import to_jsonable
 from calibrators.core.vocab import COV_METHODS
 from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, raw_covariances
 from calibrators.data import Dump
@@ -31,7 +32,7 @@ __all__ = ["CovarianceFit", "RegionFit", "covariance_fit", "fit_covariance_stage
 SCALE_BOUNDS = (1e-3, 1e4)
 
 
-@dataclass
+@dataclass(frozen=True)
 class CovarianceFit:
     """The fitted covariance stage: `method`, k per class (and pooled), s per class (and
     pooled; 1 for depth), the classes on the pooled pair, each candidate's held-out NLL."""
@@ -44,8 +45,12 @@ class CovarianceFit:
     fallback_classes: tuple[str, ...]
     candidates: dict[str, dict[str, float | None]] = field(default_factory=dict)
 
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON types (tuples as lists; a candidate without an NLL holds None)."""
+        return to_jsonable(asdict(self))
 
-@dataclass
+
+@dataclass(frozen=True)
 class RegionFit:
     """The fitted region stage: `method`, the conformal radii's dict form (None: gaussian) and
     the calibration true positives it was fit on."""
@@ -53,6 +58,10 @@ class RegionFit:
     method: str
     conformal: dict[str, Any] | None
     n_calibration: int
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON types (`conformal` is already `ConformalRegions.to_dict()`)."""
+        return to_jsonable(asdict(self))
 
 
 def _tp_data(dump: Dump, matched: MatchResult, dims: tuple[str, ...], source: str

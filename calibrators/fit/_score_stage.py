@@ -10,13 +10,14 @@ training and calibration parts together. The label of a detection never changes.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 import numpy as np
 from scipy.special import expit
 
 from calibrators import metrics
+from calibrators.core.json_safe import to_jsonable
 from calibrators.core.vocab import SCORE_METHODS
 from calibrators.data import Dump
 from calibrators.evaluation import ts_labels, ts_logits
@@ -25,8 +26,7 @@ from calibrators.scores import TemperatureScaler, label_logit, make_score_calibr
 __all__ = ["ScoreFit", "fit_score_stage"]
 
 
-
-@dataclass
+@dataclass(frozen=True)
 class ScoreFit:
     """The fitted score stage: `method`, the global `temperature` (always fit: the thesis
     baseline, and what `temperature` serves), the per-class calibrator's dict form (None for
@@ -37,6 +37,10 @@ class ScoreFit:
     temperature: float
     params: dict[str, Any] | None
     candidates: dict[str, dict[str, float]] = field(default_factory=dict)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON types (`params` is already the calibrator's `to_dict()`)."""
+        return to_jsonable(asdict(self))
 
 
 def fit_score_stage(full: Dump, full_tp: np.ndarray, train: Dump, train_tp: np.ndarray,

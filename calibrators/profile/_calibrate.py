@@ -24,7 +24,7 @@ conformal radius of the detection's class × distance group.
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -40,6 +40,7 @@ from calibrators.core.checks import (
 )
 from calibrators.core.defaults import ELLIPSE_CONFIDENCE
 from calibrators.core.errors import FieldError
+from calibrators.core.json_safe import to_jsonable
 from calibrators.covariance import add_depth_term, check_hypotheses, source_covariance
 from calibrators.regions import (
     MAX_LEVELS,
@@ -65,7 +66,6 @@ if TYPE_CHECKING:
     from calibrators.regions import ConformalGroup, ConformalRegions
 
 __all__ = ["CalibratedDetections", "calibrate_detections"]
-
 
 
 @dataclass
@@ -104,6 +104,18 @@ class CalibratedDetections:
 
     def __len__(self) -> int:
         return len(self.labels)
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON types, field by field: arrays as lists, an ellipse as `{"semi_major",
+        "semi_minor", "angle"}`, `regions` and `region_radii` keyed by `str(level)`, an
+        unbounded axis or radius None, `detections` its identity `{"frame_ids", "rows", "ids"}`."""
+        out, det = {f.name: getattr(self, f.name) for f in fields(self)}, self.detections
+        out["ellipses"] = None if self.ellipses is None else self.ellipses._asdict()
+        out["regions"] = {str(q): e._asdict() for q, e in self.regions.items()}
+        out["region_radii"] = {str(q): r for q, r in self.region_radii.items()}
+        out["detections"] = None if det is None else {
+            "frame_ids": det.frame_ids, "rows": det.rows, "ids": det.detection_ids}
+        return to_jsonable(out)
 
     def to_records(self) -> list[dict[str, Any]]:
         """One JSON-ready dict per detection, in this order, with its identity
