@@ -157,7 +157,7 @@ def _regions(dump: Dump, profile: CalibrationProfile, tp: np.ndarray, res: np.nd
     md = xy_mahalanobis(res, cov, dims)
     ix, iy = dims.index("x"), dims.index("y")
     block = cov[:, [ix, iy]][:, :, [ix, iy]]
-    conformal = profile._sources[out.cov_source].conformal
+    conformal = profile.source_stages[out.cov_source].conformal
     edges = DEFAULT_DISTANCE_EDGES if conformal is None else tuple(conformal.edges_)
     if len(md) == 0:
         return {"method": out.region_method, "levels": levels, "coverage": None,

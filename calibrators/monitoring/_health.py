@@ -175,10 +175,11 @@ def feedback_source(dump: Dump, profile: CalibrationProfile) -> str:
     provides = {"given": dump.det_cov is not None and dump.cov_dims == tuple(profile.cov_dims),
                 "hypotheses": dump.n_hypotheses > 0, "layers": dump.n_layers >= 2,
                 "none": True}
+    served = profile.served_sources
     for source in (profile.cov_source, *provides):
-        if source in profile._sources and provides[source]:
+        if source in served and provides[source]:
             return source
-    raise FieldError("dump", f"the profile scores covariances from {list(profile._sources)}; "
+    raise FieldError("dump", f"the profile scores covariances from {list(served)}; "
                              f"the feedback provides none of them (covariances over "
                              f"{list(profile.cov_dims)}, box hypotheses, or at least 2 "
                              f"decoder layers)")
@@ -187,7 +188,7 @@ def feedback_source(dump: Dump, profile: CalibrationProfile) -> str:
 def region_groups(profile: CalibrationProfile, source: str | None = None) -> RegionGroups:
     """The region groups of `profile`'s stage for covariance `source` (default: its primary
     source); see `RegionGroups`."""
-    conformal = profile._sources[source or profile.cov_source].conformal
+    conformal = profile.source_stages[source or profile.cov_source].conformal
     if conformal is None:
         edges = profile_edges(profile, source)
         names = [f"{c} {_range_text(edges[b], edges[b + 1])}" for c in profile.classes
@@ -204,7 +205,7 @@ def _range_text(lo: float, hi: float) -> str:
 def _group_index(profile: CalibrationProfile, source: str, labels: np.ndarray,
                  distances: np.ndarray) -> np.ndarray:
     """`[M]` region group of each detection."""
-    conformal = profile._sources[source].conformal
+    conformal = profile.source_stages[source].conformal
     if conformal is None:
         edges = profile_edges(profile, source)
         return labels * (edges.size - 1) + distance_bins(distances, edges)
@@ -214,7 +215,7 @@ def _group_index(profile: CalibrationProfile, source: str, labels: np.ndarray,
 def profile_edges(profile: CalibrationProfile, source: str | None = None) -> np.ndarray:
     """Distance bin edges of the profile's served regions for covariance `source` (default:
     the primary one): its conformal edges, else the default ones."""
-    conformal = profile._sources[source or profile.cov_source].conformal
+    conformal = profile.source_stages[source or profile.cov_source].conformal
     return np.asarray(DEFAULT_DISTANCE_EDGES if conformal is None else conformal.edges_,
                       dtype=np.float64)
 

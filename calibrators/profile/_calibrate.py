@@ -239,7 +239,7 @@ def _class_evidence(profile: CalibrationProfile, logits: np.ndarray | None,
                                          f"{given[0]}")
     n_classes, mode = len(profile.classes), profile.score_mode
     want = n_classes + (1 if mode == "softmax" else 0)
-    method, calibrator = profile._score
+    method, calibrator = profile.score_calibrator
     if layer_logits is not None:
         layers = as_float_array("layer_logits", layer_logits, ndim=3)
         if layers.shape[2] != want:
@@ -291,7 +291,7 @@ def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None
     and the profile serves them, else the spread of `layer_boxes` likewise, else none (Σ = 0)
     if the profile serves it; a FieldError names what the profile needs."""
     dim = len(profile.cov_dims)
-    stages = profile._sources
+    stages = profile.source_stages
     if covariances is not None:
         if "given" not in stages:
             raise FieldError("covariances", f"covariances were given but the profile's "
@@ -336,11 +336,11 @@ _NEEDS = {"layers": ("layer_boxes", ""), "hypotheses": ("hyp_boxes", " with hyp_
 
 def _takes(profile: CalibrationProfile) -> str:
     """`; it takes ...` for a profile serving several covariance sources."""
-    if len(profile._sources) < 2:
+    if len(profile.source_stages) < 2:
         return ""
     words = {"given": "covariances", "layers": "layer_boxes",
              "hypotheses": "hyp_boxes with hyp_scores", "none": "neither"}
-    return "; it takes " + " or ".join(words[s] for s in profile._sources)
+    return "; it takes " + " or ".join(words[s] for s in profile.source_stages)
 
 
 def _scaled(profile: CalibrationProfile, stage: SourceStage, base: np.ndarray,

@@ -18,6 +18,7 @@ import copy
 import json
 from dataclasses import dataclass, field, fields
 from datetime import UTC, datetime
+from types import MappingProxyType
 from typing import Any
 
 import numpy as np
@@ -35,7 +36,7 @@ MATCHING_RULES = pf.MATCHING_RULES
 __all__ = ["CalibratedDetections", "CalibrationProfile", "make_provenance"]
 
 
-@dataclass(kw_only=True)
+@dataclass(frozen=True, kw_only=True)
 class CalibrationProfile:
     """Fitted calibration of one detector (see the module docstring).
 
@@ -57,6 +58,15 @@ class CalibrationProfile:
     sources : v2, the same covariance and region stages (with their `depth_k`, `pooled_k`,
         `fallback_classes`) for the other covariance sources the val dump allowed, so a
         request is calibrated with whatever it carries (`{source: {...}}`), or None.
+
+    A profile is immutable (frozen): `dataclasses.replace` gives a changed copy, validated
+    again. `__post_init__` normalises the fields and parses the stages once, into two
+    read-only attributes that are not fields (not in the JSON):
+    score_calibrator : `(method, calibrator)`, the calibrator None for the global
+        `temperature`, else a fitted `calibrators.scores` calibrator.
+    source_stages : read-only `{covariance source: SourceStage}` of every source served, the
+        own `cov_source` first (its `depth_k`, scales and conformal radii, parsed).
+    They are plain attributes, not properties, so that serving reads them without a call.
     """
 
     classes: tuple[str, ...]
@@ -81,67 +91,80 @@ class CalibrationProfile:
 
     def __post_init__(self) -> None:
         pf.check_schema_version(self.schema_version)
-        self.classes = pf.names("classes", self.classes, distinct=True)
+        put = self._put
+        put("classes", pf.names("classes", self.classes, distinct=True))
         if not self.classes:
             raise ValueError("classes must name at least one class")
         if self.score_mode not in SCORE_MODES:
             raise ValueError(f"score_mode must be one of {list(SCORE_MODES)}, "
                              f"got {self.score_mode!r}")
-        self.temperature = pf.number("temperature", self.temperature, positive=True)
+        put("temperature", pf.number("temperature", self.temperature, positive=True))
         if not isinstance(self.modulation, bool | np.bool_):
             raise ValueError(f"modulation must be true or false, got {self.modulation!r}")
-        self.modulation = bool(self.modulation)
-        self.cov_dims = pf.names("cov_dims", self.cov_dims, distinct=True)
+        put("modulation", bool(self.modulation))
+        put("cov_dims", pf.names("cov_dims", self.cov_dims, distinct=True))
         dim_indices(self.cov_dims)
         if self.cov_source not in COV_SOURCES:
             raise ValueError(f"cov_source must be one of {list(COV_SOURCES)}, "
                              f"got {self.cov_source!r}")
-        self.depth_k = pf.class_numbers("depth_k", self.depth_k, self.classes)
-        self.pooled_k = pf.number("pooled_k", self.pooled_k, nonnegative=True)
-        self.fallback_classes = pf.names("fallback_classes", self.fallback_classes,
-                                         distinct=True)
+        put("depth_k", pf.class_numbers("depth_k", self.depth_k, self.classes))
+        put("pooled_k", pf.number("pooled_k", self.pooled_k, nonnegative=True))
+        put("fallback_classes", pf.names("fallback_classes", self.fallback_classes,
+                                         distinct=True))
         pf.known("fallback_classes", self.fallback_classes, self.classes)
-        self.matching = pf.matching(self.matching)
+        put("matching", pf.matching(self.matching))
         if self.min_score is not None:
-            self.min_score = pf.number("min_score", self.min_score)
+            put("min_score", pf.number("min_score", self.min_score))
             if not 0.0 <= self.min_score <= 1.0:
                 raise ValueError(f"min_score must be in [0, 1] or null, got {self.min_score}")
-        self.report = pf.jsonable("report", self.report)
-        self.provenance = pf.jsonable("provenance", self.provenance)
+        put("report", pf.jsonable("report", self.report))
+        put("provenance", pf.jsonable("provenance", self.provenance))
         stages = [getattr(self, key) for key in pf.STAGE_KEYS]
         if self.schema_version == 1 and any(stage is not None for stage in stages):
             raise ValueError("a schema_version 1 profile has no score_calibration, "
                              "covariance_scaling or regions; use schema_version 2")
         for key in pf.STAGE_KEYS:
             if getattr(self, key) is not None:
-                setattr(self, key, pf.jsonable(key, getattr(self, key)))
+                put(key, pf.jsonable(key, getattr(self, key)))
         # The parsed stages (validated here once, used by calibrate).
-        self._score = pf.score_stage(self.score_calibration)
+        put("score_calibrator", pf.score_stage(self.score_calibration))
         primary = pf.SourceStage(self.cov_source, self.depth_k, self.pooled_k,
                                  *pf.covariance_stage(self.covariance_scaling, self.classes),
                                  *pf.region_stage(self.regions, len(self.classes)))
-        self._sources = {self.cov_source: primary,
-                         **pf.other_sources(self.sources, self.cov_source, self.classes)}
+        put("source_stages", MappingProxyType({
+            self.cov_source: primary,
+            **pf.other_sources(self.sources, self.cov_source, self.classes)}))
+
+    def _put(self, name: str, value: Any) -> None:
+        """Set `name` while `__post_init__` builds the (frozen) profile."""
+        object.__setattr__(self, name, value)
+
+    def __getstate__(self) -> dict[str, Any]:
+        """The pickle (and deep copy) state: a mappingproxy does not pickle, its dict does."""
+        return {**self.__dict__, "source_stages": dict(self.source_stages)}
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        self.__dict__.update(state, source_stages=MappingProxyType(state["source_stages"]))
 
     @property
     def score_method(self) -> str:
         """The served score calibration: `temperature` or a per-class method."""
-        return self._score[0]
+        return self.score_calibrator[0]
 
     @property
     def cov_method(self) -> str:
         """The served covariance scaling: `depth` (Σ + k·d·I) or `shrinkage` (s·Σ + k·d·I)."""
-        return self._sources[self.cov_source].cov_method
+        return self.source_stages[self.cov_source].cov_method
 
     @property
     def served_sources(self) -> tuple[str, ...]:
         """The covariance sources a request may carry: the profile's own `cov_source` first."""
-        return tuple(self._sources)
+        return tuple(self.source_stages)
 
     @property
     def region_method(self) -> str:
         """The served regions: `gaussian` (χ²₂ radii) or `conformal`."""
-        return self._sources[self.cov_source].region_method
+        return self.source_stages[self.cov_source].region_method
 
     # -- serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
