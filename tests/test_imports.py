@@ -23,8 +23,6 @@ ALLOWED_PRIVATE_MODULES = {
     ("tests/calibrators/fit/test_fit_stream.py", "calibrators.fit._stream"),
     ("tests/calibrators/fit/test_fit_stream.py", "calibrators.scores._temperature"),
     ("tests/calibrators/scores/test_temperature.py", "calibrators.scores._temperature"),
-    # `_stored_ranks` has no public name yet (calibrators/regions/_conformal.py would give it one)
-    ("tests/calibrators/regions/test_conformal.py", "calibrators.regions._conformal"),
 }
 
 

@@ -5,8 +5,7 @@
 - `load_nuscenes` / `save_nuscenes`: a nuScenes results JSON plus (optionally) a ground-truth
   JSON in `DetectionBox` form; `detections_from_nuscenes` / `calibrated_document`: a results
   document as the calibrate batch (`calibrators.Detections`) and calibrated detections as a
-  results document, each box with its identity (`calibrate_results_document`, by reading
-  order, is kept for compatibility).
+  results document, each box placed by its identity (its token and row), never by position.
 - `open_parquet` / `load_parquet` / `save_parquet` / `ParquetWriter`: a dump as a Parquet
   dataset folder (parts of whole frames) for streamed and distributed fits.
 - `file_sha256`: content hash for provenance; `atomic_write`: a file replaced in one rename.
@@ -18,13 +17,13 @@ from calibrators.io.hashing import file_sha256
 from calibrators.io.npz import save_dump
 from calibrators.io.nuscenes import load_nuscenes
 from calibrators.io.nuscenes_batch import calibrated_document, detections_from_nuscenes
-from calibrators.io.nuscenes_write import calibrate_results_document, save_nuscenes
+from calibrators.io.nuscenes_write import save_nuscenes
 from calibrators.io.parquet import ParquetDataset, load_parquet, open_parquet
 from calibrators.io.parquet_write import ParquetWriter, save_parquet
 from calibrators.profile import ellipses_json, unbounded_none
 
 __all__ = ["FORMATS", "ParquetDataset", "ParquetWriter", "atomic_write",
-           "calibrate_results_document", "calibrated_document", "detections_from_nuscenes",
+           "calibrated_document", "detections_from_nuscenes",
            "ellipses_json", "file_sha256", "load_dump",
            "load_nuscenes", "load_parquet",
            "open_parquet", "save_dump", "save_nuscenes", "save_parquet", "unbounded_none"]

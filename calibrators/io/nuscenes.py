@@ -5,7 +5,7 @@ fields: sample_token, translation [3], size [3] (w, l, h), rotation [4] (quatern
 velocity [2], ego_translation [3] (the box centre minus the ego position, as the devkit's
 `add_center_dist` sets it), num_pts, detection_name, detection_score, attribute_name; plus our
 optional extensions `detection_logits` [C'], `covariance` [D][D], `detection_score_raw` and
-`ellipses` (written by `calibrate_results_document`, see `ellipses_json`).
+`ellipses` (written by `calibrators.io.nuscenes_batch.calibrated_document`, see `ellipses_json`).
 docs/formats.md has the full description and the conventions.
 """
 

@@ -1,17 +1,15 @@
-"""Writing nuScenes results JSON: a `Dump` as a results document (`save_nuscenes`), and
-calibrated scores and covariances written into an existing document by reading order
-(`calibrate_results_document`, kept for compatibility: calibrated results go through
-`calibrators.io.nuscenes_batch.calibrated_document`). Reading lives in
-`calibrators.io.nuscenes`; docs/formats.md describes the format.
+"""Writing nuScenes results JSON: a `Dump` as a results document (`save_nuscenes`).
+Calibrated results documents, each box placed by its identity, are written by
+`calibrators.io.nuscenes_batch.calibrated_document`; reading lives in `calibrators.io.nuscenes`;
+docs/formats.md describes the format.
 """
 
 from __future__ import annotations
 
-import copy
 import json
 import os
-from collections.abc import Mapping, Sequence
-from typing import TYPE_CHECKING, Any
+from collections.abc import Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -35,8 +33,8 @@ def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
     `covariances` [N, D, D] replace dump.det_cov. They are over `cov_dims` when given (e.g. a
     profile's dims), else over dump.cov_dims; `cov_dims` without `covariances` is refused.
     A dump does not hold num_pts or attribute_name: they are written as -1 and "". To
-    calibrate an existing results document and keep all its fields, use
-    `calibrate_results_document`.
+    calibrate an existing results document and keep all its fields, use `detcal calibrate`
+    or `calibrators.io.calibrated_document`.
     """
     if not isinstance(dump, Dump):
         raise ValueError(f"dump must be a calibrators.Dump, got {type(dump).__name__}")
@@ -79,56 +77,6 @@ def save_nuscenes(dump: Dump, results_path: str | os.PathLike[str],
     _write_json(gt_path, {"meta": meta, "results": gt_out})
 
 
-def calibrate_results_document(document: dict, scores: np.ndarray,
-                               covariances: np.ndarray | None = None,
-                               cov_dims: Sequence[str] = ("x", "y"), *,
-                               ellipses: Sequence[Mapping[str, Any] | None] | None = None
-                               ) -> dict:
-    """A copy of a results `document` with calibrated scores (and covariances) written in, by
-    reading order: the caller must have computed them on `load_nuscenes(document)`'s boxes in
-    that order. Kept for compatibility; `calibrated_document` (the calibrated-results
-    contract of `detcal calibrate` and the service) carries each box's identity instead.
-
-    Boxes are taken in the order `load_nuscenes` reads them (sample tokens in file order, boxes
-    in list order), so `scores [N]` and `covariances [N, D, D]` computed on the loaded dump
-    line up. Each box gets `detection_score = scores[i]` and keeps its raw score in
-    `detection_score_raw` (an existing `detection_score_raw` is kept: it is the detector's);
-    with `covariances` it gets `covariance` over `cov_dims`, recorded in `meta.cov_dims`;
-    with `ellipses` (`[N]`, e.g. `ellipses_json(calibrated)`) it gets `ellipses = ellipses[i]`
-    (an existing `ellipses` key is replaced).
-    Every other key of the document, its meta and its boxes (attribute_name, num_pts,
-    detection_logits, unknown extensions) is kept as it is. `document` is not modified.
-    """
-    if not isinstance(document, dict) or not isinstance(document.get("results"), dict):
-        raise ValueError("document must be a results document: an object with a 'results' "
-                         "object mapping sample tokens to lists of boxes")
-    out = copy.deepcopy(document)
-    boxes = []
-    for token, items in out["results"].items():
-        if not isinstance(items, list) or not all(isinstance(b, dict) for b in items):
-            raise ValueError(f"document results[{token!r}] must be a list of box objects")
-        boxes.extend(items)
-    scores = _check_scores(scores, len(boxes), "document (boxes)")
-    cov = None
-    if covariances is not None:
-        dims = _check_cov_dims(cov_dims)
-        cov = _check_cov_array(covariances, len(boxes), len(dims))
-        meta = out.get("meta") if isinstance(out.get("meta"), dict) else {}
-        out["meta"] = {**meta, "cov_dims": list(dims)}
-    if ellipses is not None:
-        ellipses = list(ellipses)
-        if len(ellipses) != len(boxes):
-            raise ValueError(f"ellipses has {len(ellipses)} rows but document (boxes) has "
-                             f"{len(boxes)}")
-    for i, box in enumerate(boxes):
-        if "detection_score_raw" not in box and "detection_score" in box:
-            box["detection_score_raw"] = box["detection_score"]
-        box["detection_score"] = float(scores[i])
-        if cov is not None:
-            box["covariance"] = cov[i].tolist()
-        if ellipses is not None:
-            box["ellipses"] = None if ellipses[i] is None else dict(ellipses[i])
-    return out
 
 
 # -- reading ----------------------------------------------------------------------------------

@@ -68,7 +68,7 @@ if TYPE_CHECKING:
 __all__ = ["CalibratedDetections", "calibrate_detections"]
 
 
-@dataclass
+@dataclass(frozen=True)
 class CalibratedDetections:
     """Result of `CalibrationProfile.calibrate` for N detections.
 

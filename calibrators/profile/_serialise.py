@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
 from calibrators.core.vocab import COV_METHODS, COV_SOURCES, REGION_METHODS, SCORE_METHODS
 from calibrators.regions import ConformalRegions
@@ -38,11 +37,6 @@ JSON_TYPES: dict[str, tuple[type, ...]] = {
 OPTIONAL_KEYS: dict[str, Any] = {"modulation": False, **dict.fromkeys(STAGE_KEYS)}
 
 
-def required(name: str, value: Any) -> Any:
-    """`value`, or a FieldError naming the argument (the first word of `name`) if None."""
-    if value is None:
-        raise FieldError(name.split()[0], f"{name} is required")
-    return value
 
 
 def check_schema_version(value: Any) -> None:

@@ -8,7 +8,7 @@
   `ConformalRegions`.
 """
 
-from calibrators.regions._conformal import ConformalGroup, ConformalRegions
+from calibrators.regions._conformal import ConformalGroup, ConformalRegions, stored_ranks
 from calibrators.regions._ellipse import (
     Ellipse,
     chi2_2_quantile,
@@ -29,4 +29,4 @@ from calibrators.regions._levels import (
 __all__ = ["DEFAULT_DISTANCE_EDGES", "MAX_LEVELS", "ConformalGroup", "ConformalRegions",
            "Ellipse", "chi2_2_quantile", "check_distance_edges", "check_levels",
            "distance_bins", "ellipse", "gaussian_radius", "radius_ellipse", "radius_ellipses",
-           "xy_mahalanobis"]
+           "stored_ranks", "xy_mahalanobis"]

@@ -307,13 +307,13 @@ def _group(key: tuple, known: list, s: np.ndarray, cls: np.ndarray, bins: np.nda
     elif key[0] == "pool":
         mask &= np.isin(cls, small)
     values = np.sort(s[mask])
-    ranks = _stored_ranks(values.size, n_exact, max_ranks)
+    ranks = stored_ranks(values.size, n_exact, max_ranks)
     label = known[key[1]] if key[0] == "class" else None
     return ConformalGroup(label, (int(lo), int(hi)), int(values.size), ranks,
                           values[ranks - 1] if values.size else values)
 
 
-def _stored_ranks(n: int, n_exact: int, max_ranks: int) -> np.ndarray:
+def stored_ranks(n: int, n_exact: int, max_ranks: int) -> np.ndarray:
     """Ranks `[R]` (1-based, increasing) to store for n scores (module docstring): all for
     n <= n_exact; else walking down from n in steps of max(1, min(t·u, b·n)) with u the ranks
     above, t and b widened by 1.25x until at most `max_ranks` remain."""

@@ -61,7 +61,6 @@ from calibrators.scores._temperature_nll import (
     ValueGrad,
     row_max,
     sigmoid_nll,
-    softmax_nll,
     softmax_value_grad,
 )
 from calibrators.scores._temperature_search import search_log_t
@@ -383,18 +382,3 @@ def subsample_start(z_sub: np.ndarray, y_sub: np.ndarray, bounds: tuple[float, f
     sub = search_root(softmax_value_grad(z_sub, y_sub), bounds, _SUBSAMPLE_XTOL,
                       (tiny.log_t, tiny.curvature))
     return sub.log_t, sub.curvature
-
-# The objectives under their historical names (the tests and benchmarks use them).
-_row_max, _sigmoid_nll_1d, _softmax_nll = row_max, sigmoid_nll, softmax_nll
-
-
-def _sigmoid_nll(z: np.ndarray, y: np.ndarray) -> Objective:
-    """Exact mean binary NLL of the predicted class of `z [N, C]`, labels `y [N]` 0/1, as a
-    function of `log T` (see `_temperature_nll.sigmoid_nll`)."""
-    return sigmoid_nll(row_max(z), y)
-
-
-def _binned_sigmoid_nll(s: np.ndarray, y: np.ndarray, n_bins: int = SIGMOID_BINS
-                        ) -> Objective:
-    """`sigmoid_nll(s, y)` from `n_bins` bins of `s [N]` (`SigmoidBins`)."""
-    return SigmoidBins.from_logits(s, y, n_bins).objective()

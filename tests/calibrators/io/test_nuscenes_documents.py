@@ -1,14 +1,15 @@
 """calibrators.io: results documents without ground truth, covariances over other dims, and
-calibrated results documents (`calibrate_results_document`, `ellipses_json`)."""
+the ellipses of calibrated results documents (`ellipses_json`)."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 
-from calibrators.io import calibrate_results_document, ellipses_json, load_nuscenes, save_nuscenes
+from calibrators.io import ellipses_json, load_nuscenes, save_nuscenes
 from tests.calibrators.io.dump_cases import CLASSES, devkit_box, nusc_dump, write_pair
 
 
@@ -82,59 +83,10 @@ def results_document():
     }
 
 
-def test_calibrate_results_document_keeps_every_other_field(tmp_path):
-    doc = results_document()
-    original = json.loads(json.dumps(doc))
-    res = tmp_path / "r.json"
-    res.write_text(json.dumps(doc))
-    dump = load_nuscenes(res)  # boxes in the order calibrate_results_document writes them
-    assert dump.det_labels.tolist() == [0, 1, 0]
-    scores = np.array([0.8, 0.2, 0.5])
-    cov = np.stack([np.eye(2) * (i + 1) for i in range(3)])
-    out = calibrate_results_document(doc, scores, cov, cov_dims=("x", "y"))
-    assert doc == original  # the input is not modified
-    assert out["extra_top_level"] == {"kept": True}
-    assert out["meta"] == {**original["meta"], "cov_dims": ["x", "y"]}
-    boxes = [b for t in ("s1", "s0") for b in out["results"][t]]
-    before = [b for t in ("s1", "s0") for b in original["results"][t]]
-    for i, (new, old) in enumerate(zip(boxes, before, strict=True)):
-        assert new["detection_score"] == scores[i]
-        assert new["covariance"] == cov[i].tolist()
-        for key in set(old) - {"detection_score"}:
-            assert new[key] == old[key], key
-    assert [b["detection_score_raw"] for b in boxes] == [0.9, 0.3, 0.55]  # existing raw kept
-    assert out["results"]["s2"] == []
-    back_path = tmp_path / "calibrated.json"
-    back_path.write_text(json.dumps(out))
-    back = load_nuscenes(back_path)
-    np.testing.assert_allclose(back.det_scores, scores)
-    np.testing.assert_array_equal(back.det_cov, cov)
 
 
-def test_calibrate_results_document_scores_only_and_other_dims():
-    doc = results_document()
-    out = calibrate_results_document(doc, np.array([0.1, 0.2, 0.3]))
-    assert "cov_dims" not in out["meta"]
-    assert all("covariance" not in b for v in out["results"].values() for b in v)
-    cov = np.tile(np.eye(3), (3, 1, 1))
-    out = calibrate_results_document(doc, np.array([0.1, 0.2, 0.3]), cov,
-                                     cov_dims=("x", "y", "yaw"))
-    assert out["meta"]["cov_dims"] == ["x", "y", "yaw"]
 
 
-@pytest.mark.parametrize("doc, scores, kwargs, message", [
-    ({"results": []}, np.zeros(0), {}, "document must be a results document"),
-    ([], np.zeros(0), {}, "document must be a results document"),
-    ({"results": {"a": {}}}, np.zeros(0), {}, r"results\['a'\] must be a list of box objects"),
-    (None, np.full(2, 0.5), {}, "scores has 2 rows but document"),
-    (None, np.full(3, 2.0), {}, "scores must hold probabilities"),
-    (None, np.full(3, 0.5), {"covariances": np.ones((3, 2, 2)), "cov_dims": ("x", "y", "z")},
-     r"covariances must have shape \[3, 3, 3\]"),
-    (None, np.full(3, 0.5), {"covariances": np.full((3, 2, 2), np.nan)}, "covariances has NaN"),
-])
-def test_calibrate_results_document_refuses_bad_input(doc, scores, kwargs, message):
-    with pytest.raises(ValueError, match=message):
-        calibrate_results_document(results_document() if doc is None else doc, scores, **kwargs)
 
 
 def _served(method="conformal", groups=("car 0-15 m", "car 15-30 m", "pooled classes 30+ m")):
@@ -171,7 +123,7 @@ def test_ellipses_json_refuses_non_finite_semi_axes():
 
 def test_ellipses_json_writes_unbounded_regions_as_null_axes():
     served = _served()
-    served.region_radii = {q: np.ones(3) for q in served.regions}
+    served = dataclasses.replace(served, region_radii={q: np.ones(3) for q in served.regions})
     served.region_radii[0.9][1] = np.inf
     served.regions[0.9].semi_major[1] = served.regions[0.9].semi_minor[1] = np.inf
     rows = ellipses_json(served)
@@ -180,15 +132,3 @@ def test_ellipses_json_writes_unbounded_regions_as_null_axes():
     json.dumps(rows, allow_nan=False)
 
 
-def test_calibrate_results_document_writes_ellipses():
-    doc = results_document()
-    doc["results"]["s1"][0]["ellipses"] = {"0.3": {"semi_major": 9.0}}   # replaced, not merged
-    rows = ellipses_json(_served())
-    out = calibrate_results_document(doc, np.array([0.1, 0.2, 0.3]), ellipses=rows)
-    boxes = [b for t in ("s1", "s0") for b in out["results"][t]]
-    assert [b["ellipses"] for b in boxes] == rows
-    json.dumps(out, allow_nan=False)
-    assert "ellipses" not in calibrate_results_document(
-        results_document(), np.array([0.1, 0.2, 0.3]))["results"]["s1"][0]
-    with pytest.raises(ValueError, match="ellipses has 2 rows but document"):
-        calibrate_results_document(doc, np.array([0.1, 0.2, 0.3]), ellipses=rows[:2])

@@ -10,11 +10,7 @@ import numpy as np
 import pytest
 
 from calibrators.core.errors import NotFittedError
-from calibrators.regions import ConformalRegions
-
-# `_stored_ranks` (the ranks a group keeps) has no public name yet: allowed in
-# tests/test_imports.py until calibrators/regions/_conformal.py names it `stored_ranks`.
-from calibrators.regions._conformal import _stored_ranks
+from calibrators.regions import ConformalRegions, stored_ranks
 
 LEVELS = np.array([0.5, 0.9, 0.95, 0.99])
 EDGES = (0.0, 15.0, 30.0, math.inf)
@@ -95,7 +91,7 @@ def test_stored_table_is_conservative_and_compact(n):
 
 def test_rank_grid_always_ends_at_n_and_one():
     for n in (501, 10**4, 10**7):
-        ranks = _stored_ranks(n, 500, 600)
+        ranks = stored_ranks(n, 500, 600)
         assert ranks[0] == 1 and ranks[-1] == n and (np.diff(ranks) > 0).all()
         assert len(ranks) <= 600
 

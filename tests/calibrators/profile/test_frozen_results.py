@@ -1,9 +1,7 @@
-"""Profiles are immutable: assigning to a `CalibrationProfile` raises FrozenInstanceError,
-`dataclasses.replace` gives a new (validated) copy, and its parsed stages are read-only.
-`CalibratedDetections.to_dict()` is JSON, column by column (an unbounded region is null).
-
-`CalibratedDetections` itself is not frozen yet: tests/calibrators/io/test_nuscenes_documents.py
-assigns `region_radii` on a stand-in result."""
+"""Profiles and results are immutable: assigning to a `CalibrationProfile` or a
+`CalibratedDetections` raises FrozenInstanceError, `dataclasses.replace` gives a new (validated)
+copy, and a profile's parsed stages are read-only. `CalibratedDetections.to_dict()` is JSON,
+column by column (an unbounded region is null)."""
 
 from __future__ import annotations
 
@@ -104,3 +102,9 @@ def test_a_frozen_profile_round_trips_pickles_and_copies():
         assert type(again.source_stages) is type(profile.source_stages)
         with pytest.raises(TypeError):
             again.source_stages["none"] = None    # type: ignore[index]
+
+
+def test_a_result_is_frozen():
+    served = _calibrated()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        served.scores = served.scores * 0   # type: ignore[misc]
