@@ -98,13 +98,22 @@ def matching(value: Any) -> dict[str, Any]:
     return {**value, "threshold": threshold}
 
 
+class CheckedJSON(dict):
+    """An object `jsonable` has already copied and checked: a profile rebuilt with
+    `dataclasses.replace` passes its own fields again, and they are not converted twice (a
+    fit rebuilds its profile stage by stage, and the report and stages are large)."""
+
+
 def jsonable(key: str, value: Any) -> dict:
     """A deep copy of the object `value` in plain JSON types (`calibrators.core.json_safe`);
-    non-finite numbers and values of no JSON type are refused so the profile is strict JSON."""
+    non-finite numbers and values of no JSON type are refused so the profile is strict JSON.
+    A `CheckedJSON` (a profile's own field) is returned as it is."""
+    if type(value) is CheckedJSON:
+        return value
     if not isinstance(value, dict):
         raise ValueError(f"{key} must be an object, got {type(value).__name__}")
     try:
-        return to_jsonable(value, strict=True)
+        return CheckedJSON(to_jsonable(value, strict=True))
     except (TypeError, ValueError) as exc:
         raise ValueError(f"{key} must hold JSON-able values with finite numbers: {exc}"
                          ) from None
