@@ -54,8 +54,18 @@ def test_feedback_health_drift_aliases_and_audit(own_server, tmp_path):
     http = httpx.Client(base_url=own_server.url, timeout=60.0)
     val = npz_bytes(synthetic_dump(n_frames=200, seed=1))
     _fit(http, "lidar", val)
+    frames = _feedback_matches_offline(http, tmp_path)
+    _calm_profile_takes_in_distribution_frames(http, val)
+    sent, doc = _shifted_world_degrades(http)
+    # -- it survives a restart ------------------------------------------------------------------
+    own_server.restart()
+    assert http.get("/v1/profiles/lidar/health").json() == doc
+    _aliases(http, val, frames)
+    _every_write_once_in_the_audit_log(http, sent)
 
-    # -- calibrate test frames, post their ground truth, compare with detcal evaluate ----------
+
+def _feedback_matches_offline(http: httpx.Client, tmp_path) -> list[dict]:
+    """Calibrate test frames, post their ground truth, compare with detcal evaluate."""
     test = synthetic_dump(n_frames=60, seed=5)
     frames = feedback_frames(test)
     cal = http.post("/v1/calibrate", json={"profile": "lidar", "levels": [0.5, 0.9, 0.95, 0.99],
@@ -77,8 +87,11 @@ def test_feedback_health_drift_aliases_and_audit(own_server, tmp_path):
         assert ours["lower"] <= theirs <= ours["upper"]
         assert ours["coverage"] == pytest.approx(theirs, abs=1e-9)
     assert doc["status"] == "ok"
+    return frames
 
-    # -- a second profile takes 2,000 in-distribution frames without an alarm ------------------
+
+def _calm_profile_takes_in_distribution_frames(http: httpx.Client, val: bytes) -> None:
+    """A second profile takes 2,000 in-distribution frames without an alarm."""
     _fit(http, "calm", val)
     for seed in range(10):    # 10 uploads of 200 frames (each under the 8 MiB body limit)
         chunk = npz_bytes(synthetic_dump(n_frames=200, seed=100 + seed))
@@ -90,7 +103,10 @@ def test_feedback_health_drift_aliases_and_audit(own_server, tmp_path):
     assert calm["status"] == "ok" and calm["since_activation"]["frames"] == 2000
     assert calm["window"]["frames"] == 500
 
-    # -- the shifted world degrades lidar@1 within DETECTION_FRAMES frames ---------------------
+
+def _shifted_world_degrades(http: httpx.Client) -> tuple[int, dict]:
+    """The shifted world degrades lidar@1 within DETECTION_FRAMES frames: (frames sent, the
+    health document)."""
     shifted = feedback_frames(synthetic_dump(
         n_frames=DETECTION_FRAMES, seed=7, depth_k={k: 4 * v for k, v in DEFAULT_DEPTH_K.items()}))
     sent = 0
@@ -109,12 +125,11 @@ def test_feedback_health_drift_aliases_and_audit(own_server, tmp_path):
         in metrics
     assert 'detcal_profile_health_status{profile="calm",status="ok",version="1"} 1.0' in metrics
     assert 'detcal_drift_alarms_total{profile="lidar",version="1"}' in metrics
+    return sent, doc
 
-    # -- it survives a restart ------------------------------------------------------------------
-    own_server.restart()
-    assert http.get("/v1/profiles/lidar/health").json() == doc
 
-    # -- aliases: set, move, calibrate by alias, old activate still works ----------------------
+def _aliases(http: httpx.Client, val: bytes, frames: list[dict]) -> None:
+    """Aliases: set, move, calibrate by alias, old activate still works."""
     _fit(http, "lidar", val)                       # lidar@2, inactive
     det = {"frames": [{"detections": frames[0]["detections"][:1]}]}
     assert http.put("/v1/profiles/lidar/aliases/challenger", json={"version": 2}
@@ -133,7 +148,8 @@ def test_feedback_health_drift_aliases_and_audit(own_server, tmp_path):
                      ).json()["profile"]["id"] == "lidar@2"
     assert http.get("/v1/profiles/lidar/health").json()["profile"]["id"] == "lidar@2"
 
-    # -- every write once in the audit log ------------------------------------------------------
+
+def _every_write_once_in_the_audit_log(http: httpx.Client, sent: int) -> None:
     entries = http.get("/v1/audit", headers=ADMIN, params={"limit": 1000}).json()["entries"]
     actions = [(e["action"], e["target"]) for e in reversed(entries)]
     assert actions == (

@@ -183,86 +183,104 @@ def test_report_is_strict_json():
 # -- an independent, straightforward re-implementation of the devkit loop ----------------------
 def reference_evaluate(dump, scores, class_range, ths=(0.5, 1.0, 2.0, 4.0)):
     ego = np.zeros((dump.n_frames, 3)) if dump.ego_translation is None else dump.ego_translation
-    classes = dump.classes
-
-    def boxes(rows, frames, labels, confs):
-        out = {f: [] for f in range(dump.n_frames)}
-        for k in range(len(rows)):
-            f, name = int(frames[k]), classes[labels[k]]
-            rel = rows[k][:2] - ego[f][:2]
-            if math.sqrt(rel[0] ** 2 + rel[1] ** 2) < class_range[name]:
-                out[f].append(dict(row=rows[k], name=name, conf=confs[k]))
-        return out
-
-    preds = boxes(dump.final_boxes, dump.det_frame, dump.det_labels, scores)
-    gts = boxes(dump.gt_boxes, dump.gt_frame, dump.gt_labels, [-1.0] * len(dump.gt_boxes))
-
-    def accumulate(name, th):
-        npos = sum(1 for f in gts for b in gts[f] if b["name"] == name)
-        if npos == 0:
-            return None
-        plist = [(f, b) for f in preds for b in preds[f] if b["name"] == name]
-        confs = [b["conf"] for _, b in plist]
-        order = [i for (v, i) in sorted((v, i) for (i, v) in enumerate(confs))][::-1]
-        taken, tp, fp, conf, err = set(), [], [], [], {m: [] for m in ERRS}
-        for i in order:
-            f, p = plist[i]
-            best, min_dist = None, math.inf
-            for j, g in enumerate(gts[f]):
-                if g["name"] == name and (f, j) not in taken:
-                    d = math.hypot(*(p["row"][:2] - g["row"][:2]))
-                    if d < min_dist:
-                        best, min_dist = j, d
-            conf.append(p["conf"])
-            if min_dist < th:
-                taken.add((f, best))
-                tp.append(1)
-                fp.append(0)
-                g = gts[f][best]["row"]
-                q = p["row"]
-                inter = np.prod(np.minimum(g[3:6], q[3:6]))
-                period = math.pi if name == "barrier" else 2 * math.pi
-                dyaw = (g[6] - q[6] + period / 2) % period - period / 2
-                dyaw = dyaw - 2 * math.pi if dyaw > math.pi else dyaw
-                err["trans_err"].append(min_dist)
-                err["scale_err"].append(1 - inter / (np.prod(g[3:6]) + np.prod(q[3:6]) - inter))
-                err["orient_err"].append(abs(dyaw))
-                err["vel_err"].append(math.hypot(*(q[7:9] - g[7:9])))
-                err["conf"].append(p["conf"])
-            else:
-                tp.append(0)
-                fp.append(1)
-        if not err["trans_err"]:
-            return None
-        tps, fps = np.cumsum(tp).astype(float), np.cumsum(fp).astype(float)
-        rec_grid = np.linspace(0, 1, 101)
-        prec = np.interp(rec_grid, tps / npos, tps / (tps + fps), right=0)
-        conf_i = np.interp(rec_grid, tps / npos, np.array(conf), right=0)
-        res = {}
-        for m in ERRS[:-1]:
-            x = np.array(err[m])
-            cm = np.cumsum(x) / np.arange(1, len(x) + 1)
-            res[m] = np.interp(conf_i[::-1], err["conf"][::-1], cm[::-1])[::-1]
-        return prec, conf_i, res
-
+    preds = _in_range(dump, ego, class_range, dump.final_boxes, dump.det_frame, dump.det_labels,
+                      scores)
+    gts = _in_range(dump, ego, class_range, dump.gt_boxes, dump.gt_frame, dump.gt_labels,
+                    [-1.0] * len(dump.gt_boxes))
     ap, tpe = {}, {}
-    for name in classes:
+    for name in dump.classes:
         ap[name] = {}
         for th in ths:
-            md = accumulate(name, th)
+            md = _accumulate(preds, gts, name, th)
             p = np.zeros(101) if md is None else md[0].copy()
             ap[name][str(th)] = float(np.mean(np.clip(p[11:] - 0.1, 0, None))) / 0.9
-        md = accumulate(name, 2.0)
-        tpe[name] = {}
-        for m in ERRS[:-1]:
-            if (name == "traffic_cone" and m in ("orient_err", "vel_err")) or (
-                    name == "barrier" and m == "vel_err"):
-                tpe[name][m] = math.nan
-                continue
-            last = 0 if md is None or not md[1].any() else int(np.nonzero(md[1])[0][-1])
-            tpe[name][m] = 1.0 if md is None or last < 11 else float(
-                np.mean(md[2][m][11:last + 1]))
+        tpe[name] = _tp_errors(name, _accumulate(preds, gts, name, 2.0))
     return ap, tpe
+
+
+def _in_range(dump, ego, class_range, rows, frames, labels, confs):
+    """The devkit's boxes per frame, within their class's range of the ego."""
+    out = {f: [] for f in range(dump.n_frames)}
+    for k in range(len(rows)):
+        f, name = int(frames[k]), dump.classes[labels[k]]
+        rel = rows[k][:2] - ego[f][:2]
+        if math.sqrt(rel[0] ** 2 + rel[1] ** 2) < class_range[name]:
+            out[f].append(dict(row=rows[k], name=name, conf=confs[k]))
+    return out
+
+
+def _accumulate(preds, gts, name, th):
+    """The devkit's `accumulate` for one class and threshold: precision and confidence on the
+    101-point recall grid, and the TP errors' cumulative means; None without a match."""
+    npos = sum(1 for f in gts for b in gts[f] if b["name"] == name)
+    if npos == 0:
+        return None
+    plist = [(f, b) for f in preds for b in preds[f] if b["name"] == name]
+    confs = [b["conf"] for _, b in plist]
+    order = [i for (v, i) in sorted((v, i) for (i, v) in enumerate(confs))][::-1]
+    taken, tp, fp, conf, err = set(), [], [], [], {m: [] for m in ERRS}
+    for i in order:
+        f, p = plist[i]
+        best, min_dist = _closest(gts[f], taken, f, name, p)
+        conf.append(p["conf"])
+        if min_dist < th:
+            taken.add((f, best))
+            tp.append(1)
+            fp.append(0)
+            _match_errors(err, gts[f][best]["row"], p, name, min_dist)
+        else:
+            tp.append(0)
+            fp.append(1)
+    if not err["trans_err"]:
+        return None
+    tps, fps = np.cumsum(tp).astype(float), np.cumsum(fp).astype(float)
+    rec_grid = np.linspace(0, 1, 101)
+    prec = np.interp(rec_grid, tps / npos, tps / (tps + fps), right=0)
+    conf_i = np.interp(rec_grid, tps / npos, np.array(conf), right=0)
+    res = {}
+    for m in ERRS[:-1]:
+        x = np.array(err[m])
+        cm = np.cumsum(x) / np.arange(1, len(x) + 1)
+        res[m] = np.interp(conf_i[::-1], err["conf"][::-1], cm[::-1])[::-1]
+    return prec, conf_i, res
+
+
+def _closest(frame_gts, taken, f, name, p):
+    """(index, distance) of the closest untaken ground truth of `name` in the frame."""
+    best, min_dist = None, math.inf
+    for j, g in enumerate(frame_gts):
+        if g["name"] == name and (f, j) not in taken:
+            d = math.hypot(*(p["row"][:2] - g["row"][:2]))
+            if d < min_dist:
+                best, min_dist = j, d
+    return best, min_dist
+
+
+def _match_errors(err, g, p, name, min_dist):
+    """Append one true positive's translation, scale, orientation and velocity errors."""
+    q = p["row"]
+    inter = np.prod(np.minimum(g[3:6], q[3:6]))
+    period = math.pi if name == "barrier" else 2 * math.pi
+    dyaw = (g[6] - q[6] + period / 2) % period - period / 2
+    dyaw = dyaw - 2 * math.pi if dyaw > math.pi else dyaw
+    err["trans_err"].append(min_dist)
+    err["scale_err"].append(1 - inter / (np.prod(g[3:6]) + np.prod(q[3:6]) - inter))
+    err["orient_err"].append(abs(dyaw))
+    err["vel_err"].append(math.hypot(*(q[7:9] - g[7:9])))
+    err["conf"].append(p["conf"])
+
+
+def _tp_errors(name, md):
+    """The devkit's TP errors of one class at 2 m (NaN where the class has none)."""
+    out = {}
+    for m in ERRS[:-1]:
+        if (name == "traffic_cone" and m in ("orient_err", "vel_err")) or (
+                name == "barrier" and m == "vel_err"):
+            out[m] = math.nan
+            continue
+        last = 0 if md is None or not md[1].any() else int(np.nonzero(md[1])[0][-1])
+        out[m] = 1.0 if md is None or last < 11 else float(np.mean(md[2][m][11:last + 1]))
+    return out
 
 
 ERRS = ("trans_err", "scale_err", "orient_err", "vel_err", "conf")
