@@ -69,6 +69,10 @@ class FitOptions:
     min_group: calibration TPs a class × distance group needs for its own conformal radius.
     distance_edges: inner edges (m) of the conformal distance bins. other_sources: also fit
     the covariance and region stages for the other covariance sources the dump allows.
+    cell_floors: a cell the conformal partition serves from a larger group (merged bins,
+    pooled classes) is served at least its own conformal radius. region_delta: None, or the
+    training-conditional conformal radii (each served cell covers its level with probability
+    >= 1 - region_delta over the calibration draw); `calibrators.regions` explains both.
     """
 
     threshold: float = _opt(MATCH_THRESHOLD, "matching distance in m", float)
@@ -100,6 +104,12 @@ class FitOptions:
     other_sources: bool = _opt(True, "also fit the covariance and region stages for every "
                                "other covariance source the dump allows, so a request is "
                                "calibrated with whatever it carries", bool)
+    cell_floors: bool = _opt(False, "conformal regions: a class × distance cell served by a "
+                             "larger group also gets at least its own conformal radius", bool)
+    region_delta: float | None = _opt(None, "conformal regions: every served cell covers at "
+                                      "least its level with probability >= 1 - region_delta "
+                                      "over the calibration draw (none: on average)", float,
+                                      nullable=True)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -139,9 +149,15 @@ class FitOptions:
                                              f"[0, 1), got {self.calibration}")
         set_(self, "min_group", _integer("min_group", self.min_group, minimum=1))
         set_(self, "distance_edges", _edges(self.distance_edges))
-        if not isinstance(self.other_sources, bool):
-            raise OptionError("other_sources", f"other_sources must be True or False, got "
-                                               f"{self.other_sources!r}")
+        for name in ("other_sources", "cell_floors"):
+            if not isinstance(getattr(self, name), bool):
+                raise OptionError(name, f"{name} must be True or False, got "
+                                        f"{getattr(self, name)!r}")
+        if self.region_delta is not None:
+            set_(self, "region_delta", _number("region_delta", self.region_delta))
+            if not 0.0 < self.region_delta < 1.0:
+                raise OptionError("region_delta", f"region_delta must be in (0, 1) or none, "
+                                                  f"got {self.region_delta}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (dims as a list); `FitOptions.from_dict` reads it back."""

@@ -147,7 +147,8 @@ def _with_regions(profile: CalibrationProfile, fit_part: Dump, matched: MatchRes
     sources' stages, and the primary region fit."""
     region = fit_region_stage(
         calib, None if calib is None else apply_profile(calib[0], profile).covariances, opts.dims,
-        opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges)
+        opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges,
+        cell_floor=opts.cell_floors, delta=opts.region_delta)
     profile = replace(profile, regions=_regions(region))
     if opts.other_sources:   # serve whatever covariance evidence a request carries
         report_progress("other sources", 0.55)
@@ -275,7 +276,7 @@ def _other_sources(profile: CalibrationProfile, fit_part: Dump, matched: MatchRe
         region = fit_region_stage(
             calib, None if calib is None else apply_profile(calib[0], as_primary).covariances,
             opts.dims, opts.region_method if conformal else "gaussian", opts.min_group,
-            opts.distance_edges)
+            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta)
         stage["regions"] = _regions(region)
         out[source] = stage
     return out

@@ -8,7 +8,7 @@
   `ConformalRegions`.
 """
 
-from calibrators.regions._conformal import ConformalGroup, ConformalRegions, stored_ranks
+from calibrators.regions._conformal import ConformalRegions
 from calibrators.regions._ellipse import (
     Ellipse,
     chi2_2_quantile,
@@ -17,6 +17,7 @@ from calibrators.regions._ellipse import (
     radius_ellipses,
     xy_mahalanobis,
 )
+from calibrators.regions._groups import ConformalGroup, stored_ranks
 from calibrators.regions._levels import (
     DEFAULT_DISTANCE_EDGES,
     MAX_LEVELS,

@@ -39,6 +39,12 @@ from calibrators.core.checks import (
 )
 from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
+from calibrators.regions._groups import (
+    ConformalGroup,
+    group_from_dict,
+    group_to_dict,
+    stored_ranks,
+)
 from calibrators.regions._levels import (
     DEFAULT_DISTANCE_EDGES,
     check_distance_edges,
@@ -47,30 +53,8 @@ from calibrators.regions._levels import (
 )
 
 REASONS = ("own", "merged_bins", "pooled_classes", "global")
-_TAIL_STEP, _BULK_STEP = 0.03, 0.004  # rank spacing: of the tail mass above, of n
 
 
-@dataclasses.dataclass(frozen=True)
-class ConformalGroup:
-    """The scores of one group: `label` (None = all classes), distance `bins` (lo, hi)
-    inclusive, `n` scores, and their order statistics `values [R]` at `ranks [R]`
-    (1-based, increasing, always including n)."""
-
-    label: Hashable | None
-    bins: tuple[int, int]
-    n: int
-    ranks: np.ndarray
-    values: np.ndarray
-
-    def radius(self, levels: np.ndarray) -> np.ndarray:
-        """Radii `[Q]` at checked `levels [Q]`: the stored order statistic at the first stored
-        rank >= ⌈(n+1)·q⌉ (rank computed to 1e-9), inf beyond rank n."""
-        rank = np.ceil(np.round((self.n + 1) * levels, 9)).astype(np.int64)
-        idx = np.searchsorted(self.ranks, rank, side="left")
-        out = np.full(levels.shape, np.inf)
-        ok = rank <= self.n
-        out[ok] = self.values[idx[ok]]
-        return out
 
 
 class ConformalRegions:
@@ -83,6 +67,11 @@ class ConformalRegions:
     n_exact : groups with at most this many scores store every order statistic
         (<= max_ranks).
     max_ranks : the most order statistics a larger group stores (>= 100).
+    delta : None (split-conformal: coverage >= q on average over calibration draws) or, in
+        (0, 1), the training-conditional radii: every group's (and cell floor's) coverage is
+        >= q with probability >= 1 - delta over the draw (`_groups`).
+    cell_floor : a cell served by a larger group (merged bins, pooled classes) also gets its
+        own scores as a floor: the larger of its own radius and the group's (`_groups`).
 
     Attributes set by `fit`: `classes_` (list), `edges_ [B + 1]`, `counts_ [C, B]` (scores
     per cell), `groups_` (list of `ConformalGroup`), `serving_ [C + 1, B]` (group index per
@@ -90,11 +79,14 @@ class ConformalRegions:
     """
 
     def __init__(self, distance_edges: Sequence[float] = DEFAULT_DISTANCE_EDGES,
-                 min_group: int = 100, n_exact: int = 500, max_ranks: int = 600) -> None:
+                 min_group: int = 100, n_exact: int = 500, max_ranks: int = 600,
+                 delta: float | None = None, cell_floor: bool = False) -> None:
         self.distance_edges = distance_edges
         self.min_group = min_group
         self.n_exact = n_exact
         self.max_ranks = max_ranks
+        self.delta = delta
+        self.cell_floor = cell_floor
 
     def fit(self, scores: np.ndarray, classes: np.ndarray, distances: np.ndarray,
             all_classes: Sequence[Hashable] | None = None) -> ConformalRegions:
@@ -107,6 +99,7 @@ class ConformalRegions:
         max_ranks = check_n_bins("max_ranks", self.max_ranks, minimum=100)
         if n_exact > max_ranks:
             raise FieldError("n_exact", f"n_exact ({n_exact}) must be <= max_ranks ({max_ranks})")
+        delta = _check_delta(self.delta)
         s = as_float_array("scores", scores, ndim=1)
         check_nonempty("scores", s)
         if (s < 0).any():
@@ -135,11 +128,38 @@ class ConformalRegions:
                 if key not in index:
                     index[key] = len(self.groups_)
                     self.groups_.append(_group(key, known, s, cls, bins, small, n_exact,
-                                               max_ranks))
+                                               max_ranks, delta))
                 serving[c, b] = index[key]
+        if self.cell_floor:
+            self._add_cell_floors(keys, known, s, cls, bins, serving, (n_exact, max_ranks),
+                                  delta)
         self.reasons_ = [*reasons, ["global"] * n_bins]
         self.classes_, self.edges_, self.counts_, self.serving_ = known, edges, counts, serving
         return self
+
+    def _add_cell_floors(self, keys: list[list[tuple]], known: list, s: np.ndarray,
+                         cls: np.ndarray, bins: np.ndarray, serving: np.ndarray,
+                         storage: tuple[int, int], delta: float | None) -> None:
+        """Every cell with scores that a larger group serves gets its own group with that
+        group as its `base`, and serves from it (`_groups`)."""
+        for c, row in enumerate(keys):
+            for b, key in enumerate(row):
+                if key == ("class", c, b, b) or not ((cls == c) & (bins == b)).any():
+                    continue
+                own = _group(("class", c, b, b), known, s, cls, bins, [], *storage, delta)
+                self.groups_.append(dataclasses.replace(own, base=self.groups_[serving[c, b]]))
+                serving[c, b] = len(self.groups_) - 1
+
+    def guarantees(self, levels: Sequence[float]) -> list[dict[str, Any]]:
+        """One row per class × bin: the calibration scores of the cell and of the group
+        serving it, and what holds at each of `levels` ("cell", "scaled", "pooled")."""
+        check_fitted(self, "serving_")
+        q = check_levels(levels)
+        return [{"class": label, "bin": b, "count": int(self.counts_[c, b]),
+                 "group_n": group.n if group.base is None else group.base.n,
+                 "guarantee": dict(zip(map(str, q.tolist()), group.guarantee(q), strict=True))}
+                for c, label in enumerate(self.classes_) for b in range(self.edges_.size - 1)
+                for group in [self.groups_[int(self.serving_[c, b])]]]
 
     def radii(self, levels: Sequence[float], classes: np.ndarray, distances: np.ndarray
               ) -> np.ndarray:
@@ -193,12 +213,16 @@ class ConformalRegions:
     def to_dict(self) -> dict[str, Any]:
         """Strict-JSON-able plain dict (an inf edge is None); `from_dict` serves identically."""
         check_fitted(self, "serving_")
+        hyper = {"distance_edges": list(self.distance_edges), "min_group": self.min_group,
+                 "n_exact": self.n_exact, "max_ranks": self.max_ranks}
+        # written only when set: regions fit without them keep their earlier JSON
+        hyper.update({k: v for k, v in (("delta", self.delta), ("cell_floor", self.cell_floor))
+                      if v})
+        index = {id(g): i for i, g in enumerate(self.groups_)}
         return to_jsonable({
-            "hyper": {"distance_edges": list(self.distance_edges), "min_group": self.min_group,
-                      "n_exact": self.n_exact, "max_ranks": self.max_ranks},
+            "hyper": hyper,
             "classes": self.classes_, "distance_edges": self.edges_, "counts": self.counts_,
-            "groups": [{"class": g.label, "bins": list(g.bins), "n": g.n, "ranks": g.ranks,
-                        "values": g.values} for g in self.groups_],
+            "groups": [group_to_dict(g, index) for g in self.groups_],
             "serving": self.serving_, "reasons": self.reasons_,
         })
 
@@ -221,7 +245,9 @@ class ConformalRegions:
         self.edges_ = check_distance_edges([_inf(v) for v in data["distance_edges"]])
         self.counts_ = np.asarray(data["counts"], dtype=np.int64).reshape(
             len(self.classes_), self.edges_.size - 1)
-        self.groups_ = [_group_from_dict(i, g) for i, g in enumerate(data["groups"])]
+        self.groups_ = []
+        for i, g in enumerate(data["groups"]):
+            self.groups_.append(group_from_dict(i, g, self.groups_, _check_delta(self.delta)))
         self.serving_ = np.asarray(data["serving"], dtype=np.int64)
         if (self.serving_.shape != (len(self.classes_) + 1, self.edges_.size - 1)
                 or (self.serving_ < 0).any() or (self.serving_ >= len(self.groups_)).any()):
@@ -298,7 +324,8 @@ def _runs(row: np.ndarray, min_group: int) -> list[tuple[int, int]]:
 
 
 def _group(key: tuple, known: list, s: np.ndarray, cls: np.ndarray, bins: np.ndarray,
-           small: list[int], n_exact: int, max_ranks: int) -> ConformalGroup:
+           small: list[int], n_exact: int, max_ranks: int, delta: float | None = None
+           ) -> ConformalGroup:
     """The stored table of the group `key` (see `_partition`)."""
     lo, hi = key[-2:]
     mask = (bins >= lo) & (bins <= hi)
@@ -310,26 +337,19 @@ def _group(key: tuple, known: list, s: np.ndarray, cls: np.ndarray, bins: np.nda
     ranks = stored_ranks(values.size, n_exact, max_ranks)
     label = known[key[1]] if key[0] == "class" else None
     return ConformalGroup(label, (int(lo), int(hi)), int(values.size), ranks,
-                          values[ranks - 1] if values.size else values)
+                          values[ranks - 1] if values.size else values, delta)
 
 
-def stored_ranks(n: int, n_exact: int, max_ranks: int) -> np.ndarray:
-    """Ranks `[R]` (1-based, increasing) to store for n scores (module docstring): all for
-    n <= n_exact; else walking down from n in steps of max(1, min(t·u, b·n)) with u the ranks
-    above, t and b widened by 1.25x until at most `max_ranks` remain."""
-    if n <= n_exact:
-        return np.arange(1, n + 1, dtype=np.int64)
-    tail, bulk = _TAIL_STEP, _BULK_STEP
-    while True:
-        above, out = 0, []
-        while above < n and len(out) <= max_ranks:
-            out.append(n - above)
-            above += max(1, int(min(tail * above, bulk * n)))
-        if out[-1] != 1:
-            out.append(1)
-        if len(out) <= max_ranks:
-            return np.array(out[::-1], dtype=np.int64)
-        tail, bulk = tail * 1.25, bulk * 1.25
+def _check_delta(delta: Any) -> float | None:
+    """`delta` as a float in (0, 1), or None; FieldError naming `delta` otherwise."""
+    if delta is None:
+        return None
+    if isinstance(delta, bool) or not isinstance(delta, int | float) \
+            or not 0.0 < float(delta) < 1.0:
+        raise FieldError("delta", f"delta must be a number in (0, 1) or None, got {delta!r}")
+    return float(delta)
+
+
 
 
 def _all_classes(all_classes: Sequence[Hashable], seen: list) -> list:
@@ -342,13 +362,6 @@ def _all_classes(all_classes: Sequence[Hashable], seen: list) -> list:
     return known
 
 
-def _group_from_dict(i: int, g: dict[str, Any]) -> ConformalGroup:
-    ranks = np.asarray(g["ranks"], dtype=np.int64)
-    values = as_float_array(f"groups[{i}].values", g["values"], ndim=1)
-    n = int(g["n"])
-    if ranks.shape != values.shape or (n and (ranks[-1] != n or (np.diff(ranks) <= 0).any())):
-        raise ValueError(f"groups[{i}] must have increasing ranks ending at n, one value each")
-    return ConformalGroup(g["class"], (int(g["bins"][0]), int(g["bins"][1])), n, ranks, values)
 
 
 def _inf(value: Any) -> float:

@@ -1,0 +1,139 @@
+"""A conformal group: the order statistics of its calibration scores and the radius they give
+at a level.
+
+- Split-conformal (`delta` None): for `n` exchangeable scores the radius at level `q` is the
+  `⌈(n+1)·q⌉`-th smallest; a new point of the group falls within it with probability >= q,
+  averaged over calibration draws (marginal).
+- Training-conditional (`delta` in (0, 1), Vovk 2012): the `k`-th smallest, `k` the smallest
+  rank with `P(Binomial(n, q) <= k - 1) >= 1 - delta`. The coverage of the `k`-th order
+  statistic is Beta(k, n + 1 - k) distributed over calibration draws, so with probability
+  >= 1 - delta over the draw, the served radius covers at least q of the group.
+- A cell floor (`base`): a class × distance cell served by a larger group keeps its own scores
+  too, and is served the larger of its own radius and the group's. Its own radius carries the
+  guarantee above for the cell itself (`guarantee` "cell"). Where the cell is too small for a
+  level (its rank exceeds n), the group's radius is scaled by how much wider the cell's scores
+  are than the group's at the highest anchor level the cell can certify ("scaled"), else the
+  group's radius is served as it is ("pooled").
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Hashable
+from typing import Any
+
+import numpy as np
+from scipy.stats import binom
+
+from calibrators.core.checks import as_float_array
+
+_TAIL_STEP, _BULK_STEP = 0.03, 0.004  # rank spacing: of the tail mass above, of n
+#: Levels at which a cell too small for a served level compares its width with its group's.
+ANCHOR_LEVELS = np.array([0.5, 0.8, 0.9, 0.95])
+GUARANTEES = ("cell", "scaled", "pooled")
+
+
+def conformal_rank(n: int, levels: np.ndarray, delta: float | None = None) -> np.ndarray:
+    """`[Q]` 1-based rank of the order statistic served at `levels [Q]` among `n` scores (may
+    exceed n: no finite radius): `⌈(n+1)·q⌉` (to 1e-9), or with `delta` the smallest `k`
+    with `P(Binomial(n, q) <= k - 1) >= 1 - delta`."""
+    if delta is None:
+        return np.ceil(np.round((n + 1) * levels, 9)).astype(np.int64)
+    if n == 0:
+        return np.ones(levels.shape, dtype=np.int64)
+    return binom.ppf(1.0 - delta, n, levels).astype(np.int64) + 1
+
+
+@dataclasses.dataclass(frozen=True)
+class ConformalGroup:
+    """The scores of one group: `label` (None = all classes), distance `bins` (lo, hi)
+    inclusive, `n` scores, and their order statistics `values [R]` at `ranks [R]`
+    (1-based, increasing, always including n). `delta`: the PAC level (None: marginal).
+    `base`: for a cell floor, the group that served the cell before (module docstring)."""
+
+    label: Hashable | None
+    bins: tuple[int, int]
+    n: int
+    ranks: np.ndarray
+    values: np.ndarray
+    delta: float | None = None
+    base: ConformalGroup | None = None
+
+    def own_radius(self, levels: np.ndarray, delta: float | None = None) -> np.ndarray:
+        """Radii `[Q]` of this group's own scores at checked `levels [Q]`: the stored order
+        statistic at the first stored rank >= the served rank, inf beyond rank n."""
+        rank = conformal_rank(self.n, levels, delta)
+        idx = np.searchsorted(self.ranks, rank, side="left")
+        out = np.full(levels.shape, np.inf)
+        ok = rank <= self.n
+        out[ok] = self.values[idx[ok]]
+        return out
+
+    def radius(self, levels: np.ndarray) -> np.ndarray:
+        """Served radii `[Q]` at checked `levels [Q]` (a cell floor: module docstring)."""
+        own = self.own_radius(levels, self.delta)
+        if self.base is None:
+            return own
+        pooled = self.base.radius(levels)
+        return np.where(np.isfinite(own), np.maximum(own, pooled), pooled * self._width())
+
+    def guarantee(self, levels: np.ndarray) -> list[str]:
+        """What holds for the cell at each of `levels [Q]`: "cell", "scaled" or "pooled"
+        (a group that is no cell floor: "cell" where its radius is finite, else "pooled")."""
+        own = np.isfinite(self.own_radius(levels, self.delta))
+        scaled = self.base is not None and self._width() > 1.0
+        return ["cell" if o else "scaled" if scaled else "pooled" for o in own.tolist()]
+
+    def _width(self) -> float:
+        """How much wider this cell's scores are than its base group's (>= 1), at the highest
+        anchor level the cell can certify; 1 when it can certify none."""
+        own = self.own_radius(ANCHOR_LEVELS)
+        ok = np.flatnonzero(np.isfinite(own))
+        if self.base is None or ok.size == 0:
+            return 1.0
+        j = int(ok[-1])
+        pooled = float(self.base.radius(ANCHOR_LEVELS[j:j + 1])[0])
+        return max(1.0, float(own[j]) / pooled) if pooled > 0 else 1.0
+
+
+def stored_ranks(n: int, n_exact: int, max_ranks: int) -> np.ndarray:
+    """Ranks `[R]` (1-based, increasing) to store for n scores: all for n <= n_exact; else
+    walking down from n in steps of max(1, min(t·u, b·n)) with u the ranks above, t and b
+    widened by 1.25x until at most `max_ranks` remain."""
+    if n <= n_exact:
+        return np.arange(1, n + 1, dtype=np.int64)
+    tail, bulk = _TAIL_STEP, _BULK_STEP
+    while True:
+        above, out = 0, []
+        while above < n and len(out) <= max_ranks:
+            out.append(n - above)
+            above += max(1, int(min(tail * above, bulk * n)))
+        if out[-1] != 1:
+            out.append(1)
+        if len(out) <= max_ranks:
+            return np.array(out[::-1], dtype=np.int64)
+        tail, bulk = tail * 1.25, bulk * 1.25
+
+
+def group_to_dict(g: ConformalGroup, index: dict[int, int]) -> dict[str, Any]:
+    """The JSON form of `g`; `index` maps `id()` of a group to its position (for `base`)."""
+    out = {"class": g.label, "bins": list(g.bins), "n": g.n, "ranks": g.ranks,
+           "values": g.values}
+    if g.base is not None:
+        out["base"] = index[id(g.base)]
+    return out
+
+
+def group_from_dict(i: int, g: dict[str, Any], groups: list[ConformalGroup],
+                    delta: float | None = None) -> ConformalGroup:
+    """Group `i` from its JSON form; `groups` are the groups before it (a `base` is one)."""
+    ranks = np.asarray(g["ranks"], dtype=np.int64)
+    values = as_float_array(f"groups[{i}].values", g["values"], ndim=1)
+    n = int(g["n"])
+    if ranks.shape != values.shape or (n and (ranks[-1] != n or (np.diff(ranks) <= 0).any())):
+        raise ValueError(f"groups[{i}] must have increasing ranks ending at n, one value each")
+    base = g.get("base")
+    if base is not None and not (isinstance(base, int) and 0 <= base < len(groups)):
+        raise ValueError(f"groups[{i}].base must index a group before it, got {base!r}")
+    return ConformalGroup(g["class"], (int(g["bins"][0]), int(g["bins"][1])), n, ranks, values,
+                          delta, None if base is None else groups[base])
