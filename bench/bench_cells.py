@@ -1,0 +1,121 @@
+"""Held-out honesty per class × range cell: fit the default profile on a sensor's val dump,
+serve a test dump from scenes no fit or choice used, and print what the served regions and
+scores hold per cell, per class and overall, for the default fit (the reference) and with cell
+floors, measured in the same run.
+
+    .venv/bin/detcal dump --sensor lidar --split val --frames 1000 --out val.npz
+    .venv/bin/detcal dump --sensor lidar --split test --frames 1000 --out test.npz
+    .venv/bin/python -m bench.bench_cells --val val.npz --test test.npz --min-cell 70
+
+Criteria (cells: class × 0-15 / 15-30 / 30+ m with >= `--min-cell` test true positives, at
+90 / 95 / 99 %; classes: >= `--min-class` TPs, at every level): coverage >= q - 0.02 -
+2.33·sqrt(q(1-q)/n), the one-sided 99 % test-sampling allowance plus 2 pp; overall and class
+ECE of the served scores; the median 90 % ellipse area (its square radius in Mahalanobis units).
+"""
+
+from __future__ import annotations
+
+import argparse
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibrators import (
+    FitOptions,
+    apply_profile,
+    fit_profile,
+    load_dump,
+    match_dump,
+    metrics,
+    tp_residuals,
+)
+from calibrators.data import Dump
+from calibrators.regions import DEFAULT_DISTANCE_EDGES, distance_bins, xy_mahalanobis
+
+LEVELS = (0.5, 0.9, 0.95, 0.99)
+CELL_LEVELS = (0.9, 0.95, 0.99)
+
+
+@dataclass(frozen=True)
+class Served:
+    """Test true positives under one profile: Mahalanobis distance `[M]`, class, distance,
+    served radii `[M, Q]`; every detection's served score, TP flag and class `[N]`."""
+
+    maha: np.ndarray
+    labels: np.ndarray
+    distance: np.ndarray
+    radii: np.ndarray
+    scores: np.ndarray
+    tp: np.ndarray
+    det_labels: np.ndarray
+
+
+def serve(val: Dump, test: Dump, options: FitOptions) -> Served:
+    profile = fit_profile(val, options)
+    out = apply_profile(test, profile, levels=LEVELS)
+    matched = match_dump(test)
+    tp = np.asarray(matched.tp, dtype=bool)
+    dims = tuple(profile.cov_dims)
+    maha = xy_mahalanobis(tp_residuals(test, matched, dims), out.covariances[tp], dims)
+    radii = np.stack([out.region_radii[q][tp] for q in LEVELS], axis=1)
+    return Served(maha, test.det_labels[tp], test.det_distance[tp], radii, out.scores, tp,
+                  test.det_labels)
+
+
+def allowance(q: float, n: int) -> float:
+    return q - 0.02 - 2.33 * np.sqrt(q * (1 - q) / n)
+
+
+def shortfalls(s: Served, classes: tuple[str, ...], min_cell: int, min_class: int
+               ) -> list[str]:
+    """Every cell and class below its allowance, as `class bin @ level: coverage (n)`."""
+    edges = np.asarray(DEFAULT_DISTANCE_EDGES)
+    bins = distance_bins(s.distance, edges)
+    names = [f"{edges[b]:g}-{edges[b + 1]:g} m" for b in range(edges.size - 1)]
+    out = []
+    for c, name in enumerate(classes):
+        groups = [((s.labels == c) & (bins == b), names[b], CELL_LEVELS, min_cell)
+                  for b in range(edges.size - 1)] + [(s.labels == c, "all", LEVELS, min_class)]
+        for sel, where, levels, least in groups:
+            n = int(sel.sum())
+            for q in levels if n >= least else ():
+                cov = float(np.mean(s.maha[sel] <= s.radii[sel, LEVELS.index(q)]))
+                if cov < allowance(q, n):
+                    out.append(f"{name} {where} @ {q}: {cov:.3f} ({n})")
+    return out
+
+
+def summary(s: Served, classes: tuple[str, ...], min_class: int) -> dict[str, float]:
+    covered = (s.maha[:, None] <= s.radii).mean(axis=0)
+    class_ece = [metrics.expected_calibration_error(s.scores[s.det_labels == c],
+                                                    s.tp[s.det_labels == c])
+                 for c in range(len(classes)) if (s.labels == c).sum() >= min_class]
+    return {"ece": float(metrics.expected_calibration_error(s.scores, s.tp)),
+            f"max class ECE (classes with >= {min_class} TPs)": float(max(class_ece,
+                                                                          default=np.nan)),
+            **{f"coverage {q}": float(v) for q, v in zip(LEVELS, covered, strict=True)},
+            "median 90 % r²": float(np.median(s.radii[:, LEVELS.index(0.9)] ** 2))}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--val", required=True, help="val dump to fit on")
+    ap.add_argument("--test", required=True, help="held-out dump to measure on")
+    ap.add_argument("--min-cell", type=int, default=200, help="test TPs a cell needs")
+    ap.add_argument("--min-class", type=int, default=500, help="test TPs a class needs")
+    args = ap.parse_args(argv)
+    val, test = load_dump(args.val), load_dump(args.test)
+    for name, options in (("reference: default options", FitOptions()),
+                          ("cell floors", FitOptions(cell_floors=True))):
+        served = serve(val, test, options)
+        missed = shortfalls(served, test.classes, args.min_cell, args.min_class)
+        print(f"## {name}: {len(missed)} cells or classes below their allowance")
+        for line in missed:
+            print("   ", line)
+        for key, value in summary(served, test.classes, args.min_class).items():
+            print(f"    {key}: {value:.4f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
