@@ -70,7 +70,8 @@ class FitOptions:
     distance_edges: inner edges (m) of the conformal distance bins. other_sources: also fit
     the covariance and region stages for the other covariance sources the dump allows.
     cell_floors: a cell the conformal partition serves from a larger group (merged bins,
-    pooled classes) is served at least its own conformal radius. region_delta: None, or the
+    pooled classes), whose own scores show the group's radius too small for it, is served at
+    least its own conformal radius. region_delta: None, or the
     training-conditional conformal radii (each served cell covers its level with probability
     >= 1 - region_delta over the calibration draw); `calibrators.regions` explains both.
     """
@@ -104,8 +105,9 @@ class FitOptions:
     other_sources: bool = _opt(True, "also fit the covariance and region stages for every "
                                "other covariance source the dump allows, so a request is "
                                "calibrated with whatever it carries", bool)
-    cell_floors: bool = _opt(False, "conformal regions: a class × distance cell served by a "
-                             "larger group also gets at least its own conformal radius", bool)
+    cell_floors: bool = _opt(True, "conformal regions: a class × distance cell served by a "
+                             "larger group that is too small for it gets at least its own "
+                             "conformal radius", bool)
     region_delta: float | None = _opt(None, "conformal regions: every served cell covers at "
                                       "least its level with probability >= 1 - region_delta "
                                       "over the calibration draw (none: on average)", float,

@@ -9,11 +9,14 @@ at a level.
   statistic is Beta(k, n + 1 - k) distributed over calibration draws, so with probability
   >= 1 - delta over the draw, the served radius covers at least q of the group.
 - A cell floor (`base`): a class × distance cell served by a larger group keeps its own scores
-  too, and is served the larger of its own radius and the group's. Its own radius carries the
-  guarantee above for the cell itself (`guarantee` "cell"). Where the cell is too small for a
-  level (its rank exceeds n), the group's radius is scaled by how much wider the cell's scores
-  are than the group's at the highest anchor level the cell can certify ("scaled"), else the
-  group's radius is served as it is ("pooled").
+  too. Where they show that the group's radius covers less than q of the cell — more of them
+  lie beyond it than a cell covered at q gives with probability `FLOOR_ALPHA` (a binomial
+  test) — the cell is served the larger of its own radius and the group's: its own radius
+  carries the guarantee above for the cell itself (`guarantee` "cell"); a cell too small for
+  the level (its rank exceeds n) gets the group's radius scaled by how much wider its scores
+  are than the group's at the highest anchor level it can certify ("scaled"). Elsewhere the
+  group's radius is served as it is ("pooled"): a floor on every cell would be the largest of
+  a handful of scores in a small cell and over-cover it.
 """
 
 from __future__ import annotations
@@ -31,6 +34,9 @@ _TAIL_STEP, _BULK_STEP = 0.03, 0.004  # rank spacing: of the tail mass above, of
 #: Levels at which a cell too small for a served level compares its width with its group's.
 ANCHOR_LEVELS = np.array([0.5, 0.8, 0.9, 0.95])
 GUARANTEES = ("cell", "scaled", "pooled")
+#: The binomial test's level: a cell whose scores beyond its group's radius are this improbable
+#: for a cell covered at q is served its floor.
+FLOOR_ALPHA = 0.05
 
 
 def conformal_rank(n: int, levels: np.ndarray, delta: float | None = None) -> np.ndarray:
@@ -75,14 +81,36 @@ class ConformalGroup:
         if self.base is None:
             return own
         pooled = self.base.radius(levels)
-        return np.where(np.isfinite(own), np.maximum(own, pooled), pooled * self._width())
+        floor = np.where(np.isfinite(own), np.maximum(own, pooled), pooled * self._width())
+        return np.where(self._floored(levels, pooled), floor, pooled)
 
     def guarantee(self, levels: np.ndarray) -> list[str]:
         """What holds for the cell at each of `levels [Q]`: "cell", "scaled" or "pooled"
         (a group that is no cell floor: "cell" where its radius is finite, else "pooled")."""
         own = np.isfinite(self.own_radius(levels, self.delta))
-        scaled = self.base is not None and self._width() > 1.0
-        return ["cell" if o else "scaled" if scaled else "pooled" for o in own.tolist()]
+        if self.base is None:
+            return ["cell" if o else "pooled" for o in own.tolist()]
+        floored = self._floored(levels, self.base.radius(levels))
+        scaled = self._width() > 1.0
+        return ["pooled" if not f else "cell" if o else "scaled" if scaled else "pooled"
+                for o, f in zip(own.tolist(), floored.tolist(), strict=True)]
+
+    def _floored(self, levels: np.ndarray, pooled: np.ndarray) -> np.ndarray:
+        """`[Q]` bool: the cell is served its floor at `levels`: its scores show the group's
+        radius too small there, or at any anchor level (where a small cell has the counts to
+        show that it is wider than its group)."""
+        assert self.base is not None
+        wide = bool(self._misses(ANCHOR_LEVELS, self.base.radius(ANCHOR_LEVELS)).any())
+        return self._misses(levels, pooled) | wide
+
+    def _misses(self, levels: np.ndarray, pooled: np.ndarray) -> np.ndarray:
+        """`[Q]` bool: this cell's scores beyond the `pooled` radii are too many for a cell
+        covered at `levels` (P(Binomial(n, 1 - q) >= beyond) < FLOOR_ALPHA). Counted from the
+        stored order statistics: exact up to `n_exact` scores, else at least as many."""
+        idx = np.searchsorted(self.values, pooled, side="right")
+        within = np.where(idx > 0, self.ranks[np.maximum(idx - 1, 0)], 0)
+        beyond = self.n - within
+        return (beyond > 0) & (binom.sf(beyond - 1, self.n, 1.0 - levels) < FLOOR_ALPHA)
 
     def _width(self) -> float:
         """How much wider this cell's scores are than its base group's (>= 1), at the highest

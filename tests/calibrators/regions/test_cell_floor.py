@@ -96,3 +96,20 @@ def test_a_bad_delta_is_refused_naming_it(delta):
     s, c, d = _draw(np.random.default_rng(4))
     with pytest.raises(ValueError, match="delta"):
         ConformalRegions(EDGES, delta=delta).fit(s, c, d)
+
+
+def test_a_cell_as_wide_as_its_group_keeps_the_group_radius_in_most_draws():
+    """A floor only where the cell's scores show the group's radius too small: a small cell
+    drawn like its group is not over-covered by the largest of its few scores."""
+    rng = np.random.default_rng(5)
+    floored, coverage = 0, []
+    for _ in range(300):
+        s, c, d = _draw(rng)
+        s[(c == 1) & (d < 15)] /= WIDE          # the rare cell now drawn like the others
+        with_floor = ConformalRegions(EDGES, min_group=100, cell_floor=True).fit(s, c, d)
+        plain = ConformalRegions(EDGES, min_group=100).fit(s, c, d)
+        r = _rare_radius(with_floor)
+        floored += r != _rare_radius(plain)
+        coverage.append(1.0 - np.exp(-r ** 2 / 2))   # Rayleigh law of scale 1
+    assert floored / 300 < 0.3
+    assert float(np.mean(coverage)) < Q + 0.03
