@@ -4,8 +4,8 @@ scores hold per cell, per class and overall, for the default fit and without cel
 reference), measured in the same run.
 
     .venv/bin/detcal dump --sensor lidar --split val --frames 1000 --out val.npz
-    .venv/bin/detcal dump --sensor lidar --split test --frames 1000 --out test.npz
-    .venv/bin/python -m bench.bench_cells --val val.npz --test test.npz --min-cell 70
+    .venv/bin/detcal dump --sensor lidar --split holdout --frames 3000 --out test.npz
+    .venv/bin/python -m bench.bench_cells --val val.npz --test test.npz
 
 Criteria (cells: class × 0-15 / 15-30 / 30+ m with >= `--min-cell` test true positives, at
 90 / 95 / 99 %; classes: >= `--min-class` TPs, at every level): coverage >= q - 0.02 -

@@ -12,8 +12,9 @@ from __future__ import annotations
 
 #: The simulated sensors; each has one bundled detector (`detectors.registry`).
 SENSORS: tuple[str, ...] = ("lidar", "radar1", "radar5", "camera")
-#: The scene-seed splits (`detectors.sim.SPLITS` holds their seed ranges).
-SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test")
+#: The scene-seed splits (`detectors.sim.SPLITS` holds their seed ranges). `holdout` is never
+#: trained on, fit on or chosen by: held-out measurements of served calibration draw from it.
+SPLIT_NAMES: tuple[str, ...] = ("train", "val", "test", "holdout")
 #: Where a bundled detector's own (x, y) box covariance comes from: the sample covariance of
 #: a query's box across decoder layers (`layers`, thesis) or the final layer's attention
 #: spread plus the variance of a uniform position in one token cell (`attention`, seed 000).

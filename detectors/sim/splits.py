@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from detectors.vocab import SPLIT_NAMES
 
-# Seed ranges in SPLIT_NAMES order: train, val, test.
+# Seed ranges in SPLIT_NAMES order: train, val, test, holdout.
 SPLITS: dict[str, range] = dict(zip(SPLIT_NAMES, (
     range(0, 100_000),
     range(100_000, 101_000),
     range(200_000, 201_000),
+    range(300_000, 310_000),
 ), strict=True))
 
 

@@ -84,9 +84,10 @@ def test_feature_names() -> None:
 
 def test_splits_are_disjoint() -> None:
     sets = {name: set(r) for name, r in SPLITS.items()}
-    assert set(SPLITS) == {"train", "val", "test"}
-    assert not sets["train"] & sets["val"] and not sets["train"] & sets["test"]
-    assert not sets["val"] & sets["test"]
+    assert set(SPLITS) == {"train", "val", "test", "holdout"}
+    names = sorted(sets)
+    assert all(not sets[a] & sets[b] for a in names for b in names if a < b)
+    assert len(SPLITS["holdout"]) >= 3000
 
 
 def test_bad_arguments_are_named() -> None:
