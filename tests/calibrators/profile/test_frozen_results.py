@@ -13,6 +13,7 @@ import pickle
 import numpy as np
 import pytest
 
+from calibrators.fit import CovarianceFit, RegionFit, ScoreFit
 from calibrators.profile import CalibratedDetections, CalibrationProfile, Detections
 
 CLASSES = ("car", "pedestrian")
@@ -108,3 +109,14 @@ def test_a_result_is_frozen():
     served = _calibrated()
     with pytest.raises(dataclasses.FrozenInstanceError):
         served.scores = served.scores * 0   # type: ignore[misc]
+
+
+@pytest.mark.parametrize("result", [
+    ScoreFit("temperature", 1.5, None, {"temperature": {"nll": 0.3, "ece": 0.01}}),
+    CovarianceFit("depth", {"car": 0.01}, 0.02, {"car": 1.0}, 1.0, ("bus",)),
+    RegionFit("gaussian", None, 12),
+])
+def test_fit_stage_results_are_frozen_and_json(result):
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        result.method = "other"   # type: ignore[misc]
+    assert json.loads(json.dumps(result.to_dict(), allow_nan=False))["method"] == result.method
