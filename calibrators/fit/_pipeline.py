@@ -44,7 +44,13 @@ from calibrators.core.errors import OptionError
 from calibrators.core.vocab import COV_SOURCES
 from calibrators.covariance import resolve_cov_source
 from calibrators.data import Dump, canonical_order, select_detections, split_frames
-from calibrators.evaluation import MatchResult, ProfileReport, match_dump, summarize
+from calibrators.evaluation import (
+    SUMMARY_LEVELS,
+    MatchResult,
+    ProfileReport,
+    match_dump,
+    summarize,
+)
 from calibrators.fit._options import FitOptions
 from calibrators.fit._region_stage import (
     CovarianceFit,
@@ -54,6 +60,7 @@ from calibrators.fit._region_stage import (
 )
 from calibrators.fit._score_stage import ScoreFit, fit_score_stage
 from calibrators.profile import CalibrationProfile, apply_profile, make_provenance
+from calibrators.regions import ConformalRegions
 
 Progress = Callable[[str, float], None]
 
@@ -102,7 +109,7 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
                                     report_progress)
     profile = versioned(profile)
     report = _report(profile, fit_part, held_part, matched, opts,
-                     selection_of(scores, cov, region), report_progress)
+                     selection_of(scores, cov, region, tuple(dump.classes)), report_progress)
     profile = replace(profile, report=report)
     report_progress("done", 1.0)
     return profile
@@ -198,13 +205,26 @@ def source_stage(cov: CovarianceFit, region: RegionFit | None) -> dict[str, Any]
             "regions": _regions(region)}
 
 
-def selection_of(scores: ScoreFit, cov: CovarianceFit, region: RegionFit | None
-                 ) -> dict[str, Any]:
-    """The report's `selection`: the chosen method of each stage and its candidates' scores."""
+def selection_of(scores: ScoreFit, cov: CovarianceFit, region: RegionFit | None,
+                 classes: tuple[str, ...] | None = None) -> dict[str, Any]:
+    """The report's `selection`: the chosen method of each stage and its candidates' scores,
+    and per conformal cell what its regions guarantee (`classes` name the cells)."""
     return {"score": {"chosen": scores.method, "candidates": scores.candidates},
             "covariance": {"chosen": cov.method, "candidates": cov.candidates},
             "regions": None if region is None else {
-                "chosen": region.method, "calibration_tps": region.n_calibration}}
+                "chosen": region.method, "calibration_tps": region.n_calibration,
+                "cells": _cell_guarantees(region, classes)}}
+
+
+def _cell_guarantees(region: RegionFit, classes: tuple[str, ...] | None
+                     ) -> list[dict[str, Any]] | None:
+    """Per class × distance cell of conformal regions: its calibration scores, its serving
+    group's, and what holds at the summary's levels (`ConformalRegions.guarantees`), the
+    class by name when `classes` are given."""
+    if region.conformal is None:
+        return None
+    rows = ConformalRegions.from_dict(region.conformal).guarantees(SUMMARY_LEVELS)
+    return [{**r, "class": classes[r["class"]]} if classes else r for r in rows]
 
 
 def _regions(region: RegionFit | None) -> dict[str, Any] | None:
