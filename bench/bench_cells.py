@@ -5,21 +5,24 @@ reference), measured in the same run.
 
     .venv/bin/detcal dump --sensor lidar --split val --frames 1000 --out val.npz
     .venv/bin/detcal dump --sensor lidar --split holdout --frames 3000 --out test.npz
-    .venv/bin/python -m bench.bench_cells --val val.npz --test test.npz
+    .venv/bin/python -m bench.bench_cells --val val.npz --test test.npz --label "lidar holdout"
 
 Criteria (cells: class × 0-15 / 15-30 / 30+ m with >= `--min-cell` test true positives, at
 90 / 95 / 99 %; classes: >= `--min-class` TPs, at every level): coverage >= q - 0.02 -
 2.33·sqrt(q(1-q)/n), the one-sided 99 % test-sampling allowance plus 2 pp; overall and class
 ECE of the served scores; the median 90 % ellipse area (its square radius in Mahalanobis units).
+With `--label`, the figures are also written to docs/benchmarks.md as section `cells <label>`.
 """
 
 from __future__ import annotations
 
 import argparse
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
+from bench._report import write_section
 from calibrators import (
     FitOptions,
     apply_profile,
@@ -103,17 +106,29 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--test", required=True, help="held-out dump to measure on")
     ap.add_argument("--min-cell", type=int, default=200, help="test TPs a cell needs")
     ap.add_argument("--min-class", type=int, default=500, help="test TPs a class needs")
+    ap.add_argument("--label", help="write the figures to docs/benchmarks.md under this name")
     args = ap.parse_args(argv)
     val, test = load_dump(args.val), load_dump(args.test)
+    rows = []
     for name, options in (("reference: without cell floors", FitOptions(cell_floors=False)),
                           ("default options (cell floors)", FitOptions())):
         served = serve(val, test, options)
         missed = shortfalls(served, test.classes, args.min_cell, args.min_class)
+        figures = summary(served, test.classes, args.min_class)
         print(f"## {name}: {len(missed)} cells or classes below their allowance")
         for line in missed:
             print("   ", line)
-        for key, value in summary(served, test.classes, args.min_class).items():
+        for key, value in figures.items():
             print(f"    {key}: {value:.4f}")
+        rows.append(f"| {name} | {len(missed)}: {'; '.join(missed) or '-'} | "
+                    + " | ".join(f"{v:.4f}" for v in figures.values()) + " |")
+    if args.label:
+        head = ("| fit | shortfalls (class, range, level: coverage (test TPs)) | "
+                + " | ".join(figures) + " |\n|" + "---|" * (len(figures) + 2))
+        write_section(f"cells {args.label}", f"## Per-cell coverage: {args.label}\n\n"
+                      f"Fit on `{Path(args.val).name}`, served on `{Path(args.test).name}` "
+                      f"({test.n_frames} frames); cells with >= {args.min_cell} test TPs, "
+                      f"classes with >= {args.min_class}.\n\n{head}\n" + "\n".join(rows))
     return 0
 
 
