@@ -45,7 +45,6 @@ from calibrators.core.vocab import COV_SOURCES
 from calibrators.covariance import resolve_cov_source
 from calibrators.data import Dump, canonical_order, select_detections, split_frames
 from calibrators.evaluation import (
-    SUMMARY_LEVELS,
     MatchResult,
     ProfileReport,
     match_dump,
@@ -60,7 +59,6 @@ from calibrators.fit._region_stage import (
 )
 from calibrators.fit._score_stage import ScoreFit, fit_score_stage
 from calibrators.profile import CalibrationProfile, apply_profile, make_provenance
-from calibrators.regions import ConformalRegions
 
 Progress = Callable[[str, float], None]
 
@@ -218,13 +216,10 @@ def selection_of(scores: ScoreFit, cov: CovarianceFit, region: RegionFit | None,
 
 def _cell_guarantees(region: RegionFit, classes: tuple[str, ...] | None
                      ) -> list[dict[str, Any]] | None:
-    """Per class × distance cell of conformal regions: its calibration scores, its serving
-    group's, and what holds at the summary's levels (`ConformalRegions.guarantees`), the
-    class by name when `classes` are given."""
-    if region.conformal is None:
+    """The region stage's per-cell guarantees, the class by name when `classes` are given."""
+    if region.cells is None:
         return None
-    rows = ConformalRegions.from_dict(region.conformal).guarantees(SUMMARY_LEVELS)
-    return [{**r, "class": classes[r["class"]]} if classes else r for r in rows]
+    return [{**r, "class": classes[r["class"]]} if classes else r for r in region.cells]
 
 
 def _regions(region: RegionFit | None) -> dict[str, Any] | None:

@@ -22,7 +22,7 @@ from calibrators.core.json_safe import to_jsonable
 from calibrators.core.vocab import COV_METHODS
 from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, raw_covariances
 from calibrators.data import Dump
-from calibrators.evaluation import MatchResult, tp_residuals
+from calibrators.evaluation import SUMMARY_LEVELS, MatchResult, tp_residuals
 from calibrators.regions import ConformalRegions, xy_mahalanobis
 
 __all__ = ["CovarianceFit", "RegionFit", "covariance_fit", "fit_covariance_stage",
@@ -52,12 +52,15 @@ class CovarianceFit:
 
 @dataclass(frozen=True)
 class RegionFit:
-    """The fitted region stage: `method`, the conformal radii's dict form (None: gaussian) and
-    the calibration true positives it was fit on."""
+    """The fitted region stage: `method`, the conformal radii's dict form (None: gaussian),
+    the calibration true positives it was fit on, and per class × distance cell what the
+    conformal regions guarantee at the summary's levels (`ConformalRegions.guarantees`, classes
+    by index; None: gaussian)."""
 
     method: str
     conformal: dict[str, Any] | None
     n_calibration: int
+    cells: list[dict[str, Any]] | None = None
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON types (`conformal` is already `ConformalRegions.to_dict()`)."""
@@ -169,4 +172,4 @@ def fit_region_stage(calib: tuple[Dump, MatchResult] | None, covariances: np.nda
                                min_group=min_group, cell_floor=cell_floor, delta=delta)
     regions.fit(scores, dump.det_labels[tp], dump.det_distance[tp],
                 all_classes=list(range(len(dump.classes))))
-    return RegionFit("conformal", regions.to_dict(), n_tp)
+    return RegionFit("conformal", regions.to_dict(), n_tp, regions.guarantees(SUMMARY_LEVELS))

@@ -131,22 +131,22 @@ class ConformalRegions:
                                                max_ranks, delta))
                 serving[c, b] = index[key]
         if self.cell_floor:
-            self._add_cell_floors(keys, known, s, cls, bins, serving, (n_exact, max_ranks),
-                                  delta)
+            self._add_cell_floors(keys, counts, (known, s, cls, bins), serving,
+                                  (n_exact, max_ranks, delta))
         self.reasons_ = [*reasons, ["global"] * n_bins]
         self.classes_, self.edges_, self.counts_, self.serving_ = known, edges, counts, serving
         return self
 
-    def _add_cell_floors(self, keys: list[list[tuple]], known: list, s: np.ndarray,
-                         cls: np.ndarray, bins: np.ndarray, serving: np.ndarray,
-                         storage: tuple[int, int], delta: float | None) -> None:
-        """Every cell with scores that a larger group serves gets its own group with that
-        group as its `base`, and serves from it (`_groups`)."""
+    def _add_cell_floors(self, keys: list[list[tuple]], counts: np.ndarray, data: tuple,
+                         serving: np.ndarray, storage: tuple) -> None:
+        """Every cell with scores (`counts [C, B]`) that a larger group serves gets its own
+        group with that group as its `base`, and serves from it (`_groups`). `data`: the
+        fit's (classes, scores, class codes, bins); `storage`: (n_exact, max_ranks, delta)."""
         for c, row in enumerate(keys):
             for b, key in enumerate(row):
-                if key == ("class", c, b, b) or not ((cls == c) & (bins == b)).any():
+                if key == ("class", c, b, b) or counts[c, b] == 0:
                     continue
-                own = _group(("class", c, b, b), known, s, cls, bins, [], *storage, delta)
+                own = _group(("class", c, b, b), *data, [], *storage)
                 self.groups_.append(dataclasses.replace(own, base=self.groups_[serving[c, b]]))
                 serving[c, b] = len(self.groups_) - 1
 
@@ -245,9 +245,9 @@ class ConformalRegions:
         self.edges_ = check_distance_edges([_inf(v) for v in data["distance_edges"]])
         self.counts_ = np.asarray(data["counts"], dtype=np.int64).reshape(
             len(self.classes_), self.edges_.size - 1)
-        self.groups_ = []
+        self.groups_, delta = [], _check_delta(self.delta)
         for i, g in enumerate(data["groups"]):
-            self.groups_.append(group_from_dict(i, g, self.groups_, _check_delta(self.delta)))
+            self.groups_.append(group_from_dict(i, g, self.groups_, delta))
         self.serving_ = np.asarray(data["serving"], dtype=np.int64)
         if (self.serving_.shape != (len(self.classes_) + 1, self.edges_.size - 1)
                 or (self.serving_ < 0).any() or (self.serving_ >= len(self.groups_)).any()):
