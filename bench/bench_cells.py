@@ -1,7 +1,8 @@
 """Held-out honesty per class × range cell: fit the default profile on a sensor's val dump,
 serve a test dump from scenes no fit or choice used, and print what the served regions and
 scores hold per cell, per class and overall, for the default fit and without cell floors (the
-reference), measured in the same run.
+reference) and with cell floors decided by their binomial test alone (no tail floors), measured
+in the same run.
 
     .venv/bin/detcal dump --sensor lidar --split val --frames 1000 --out val.npz
     .venv/bin/detcal dump --sensor lidar --split holdout --frames 3000 --out test.npz
@@ -111,7 +112,9 @@ def main(argv: list[str] | None = None) -> int:
     val, test = load_dump(args.val), load_dump(args.test)
     rows = []
     for name, options in (("reference: without cell floors", FitOptions(cell_floors=False)),
-                          ("default options (cell floors)", FitOptions())):
+                          ("cell floors by test only (floor_delta none)",
+                           FitOptions(floor_delta=None)),
+                          ("default options (cell and tail floors)", FitOptions())):
         served = serve(val, test, options)
         missed = shortfalls(served, test.classes, args.min_cell, args.min_class)
         figures = summary(served, test.classes, args.min_class)

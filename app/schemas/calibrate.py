@@ -18,7 +18,7 @@ from pydantic import (
 from app.schemas.types import Finite, Probability, ProfileRef, ProfileRefText
 from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.core.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
-from calibrators.regions import MAX_LEVELS
+from calibrators.regions import GUARANTEES, MAX_LEVELS
 
 Row = list[Finite]
 #: A box row has every field, or every field up to the velocity.
@@ -212,6 +212,15 @@ class LevelEllipseOut(BaseModel):
                     "(`sqrt(χ²₂(q))`).")
     group: str | None = Field(description="The conformal group (class × distance bin, e.g. "
                                           "`car 15-30 m`) that served it; null for gaussian.")
+    guarantee: Literal[GUARANTEES] = Field(  # type: ignore[valid-type]
+        description="What holds for this region: `cell` (the calibration true positives of its "
+                    "own class × distance cell certify its level), `pooled` (those of a group "
+                    "of merged distance bins or pooled small classes do), `marginal` (only all "
+                    "of them together), `scaled` (its group's radius widened by how much wider "
+                    "its cell's errors are: no finite-sample guarantee of its own), `none` "
+                    "(gaussian).")
+    calibration_n: int | None = Field(description="The calibration true positives behind the "
+                                                  "guarantee; null for gaussian.")
 
 
 class DetectionOut(BaseModel):

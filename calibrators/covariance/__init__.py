@@ -28,6 +28,7 @@ from calibrators.covariance._sources import (
     resolve_cov_source,
     source_arrays,
     source_covariance,
+    source_inputs,
 )
 from calibrators.covariance._spectral import spectral, spectral_2x2
 
@@ -35,4 +36,4 @@ __all__ = ["MANTISSA_BITS", "OCTAVES", "SOURCE_ARRAYS", "BinSums", "DepthScaler"
            "ShrinkageDepthScaler", "add_depth_term", "brent_k", "check_hypotheses", "depth_bins",
            "dim_indices", "fit_inputs", "hypotheses_covariance", "layer_spread", "log_bin",
            "log_bin_low", "raw_covariances", "resolve_cov_source", "source_arrays",
-           "source_covariance", "spectral", "spectral_2x2"]
+           "source_covariance", "source_inputs", "spectral", "spectral_2x2"]

@@ -68,6 +68,12 @@ SOURCE_ARRAYS: dict[str, dict[str, str]] = {
 }
 
 
+def source_inputs(source: str) -> str:
+    """What a calibrate call carries for `source`, in words: `hyp_boxes with hyp_scores`,
+    `neither` (none), ..."""
+    return " with ".join(SOURCE_ARRAYS[source]) or "neither"
+
+
 def source_covariance(source: str, dims: Sequence[str], *,
                       covariances: np.ndarray | None = None,
                       layer_boxes: np.ndarray | None = None,

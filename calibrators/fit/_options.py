@@ -71,7 +71,8 @@ class FitOptions:
     the covariance and region stages for the other covariance sources the dump allows.
     cell_floors: a cell the conformal partition serves from a larger group (merged bins,
     pooled classes), whose own scores show the group's radius too small for it, is served at
-    least its own conformal radius. region_delta: None, or the
+    least its own conformal radius; floor_delta: at levels >= 80 %, at least its own
+    training-conditional radius at this δ. region_delta: None, or the
     training-conditional conformal radii (each served cell covers its level with probability
     >= 1 - region_delta over the calibration draw); `calibrators.regions` explains both.
     """
@@ -112,6 +113,12 @@ class FitOptions:
                                       "least its level with probability >= 1 - region_delta "
                                       "over the calibration draw (none: on average)", float,
                                       nullable=True)
+    floor_delta: float | None = _opt(0.2, "conformal regions with cell floors: at levels of "
+                                     "0.8 and above every cell floor serves at least the "
+                                     "cell's own "
+                                     "radius that covers its level with probability >= "
+                                     "1 - floor_delta (none: only where a test shows its "
+                                     "group's radius too small)", float, nullable=True)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -155,11 +162,12 @@ class FitOptions:
             if not isinstance(getattr(self, name), bool):
                 raise OptionError(name, f"{name} must be True or False, got "
                                         f"{getattr(self, name)!r}")
-        if self.region_delta is not None:
-            set_(self, "region_delta", _number("region_delta", self.region_delta))
-            if not 0.0 < self.region_delta < 1.0:
-                raise OptionError("region_delta", f"region_delta must be in (0, 1) or none, "
-                                                  f"got {self.region_delta}")
+        for name in ("region_delta", "floor_delta"):
+            if getattr(self, name) is not None:
+                set_(self, name, _number(name, getattr(self, name)))
+                if not 0.0 < getattr(self, name) < 1.0:
+                    raise OptionError(name, f"{name} must be in (0, 1) or none, got "
+                                            f"{getattr(self, name)}")
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (dims as a list); `FitOptions.from_dict` reads it back."""

@@ -153,7 +153,7 @@ def _with_regions(profile: CalibrationProfile, fit_part: Dump, matched: MatchRes
     region = fit_region_stage(
         calib, None if calib is None else apply_profile(calib[0], profile).covariances, opts.dims,
         opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges,
-        cell_floor=opts.cell_floors, delta=opts.region_delta)
+        cell_floor=opts.cell_floors, delta=opts.region_delta, floor_delta=opts.floor_delta)
     profile = replace(profile, regions=_regions(region))
     if opts.other_sources:   # serve whatever covariance evidence a request carries
         report_progress("other sources", 0.55)
@@ -291,7 +291,8 @@ def _other_sources(profile: CalibrationProfile, fit_part: Dump, matched: MatchRe
         region = fit_region_stage(
             calib, None if calib is None else apply_profile(calib[0], as_primary).covariances,
             opts.dims, opts.region_method if conformal else "gaussian", opts.min_group,
-            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta)
+            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
+            floor_delta=opts.floor_delta)
         stage["regions"] = _regions(region)
         out[source] = stage
     return out

@@ -153,10 +153,11 @@ def _nll(res: np.ndarray, cov: np.ndarray) -> float | None:
 def fit_region_stage(calib: tuple[Dump, MatchResult] | None, covariances: np.ndarray | None,
                      dims: tuple[str, ...], method: str, min_group: int,
                      distance_edges: tuple[float, ...], *, cell_floor: bool = False,
-                     delta: float | None = None) -> RegionFit | None:
+                     delta: float | None = None, floor_delta: float | None = None
+                     ) -> RegionFit | None:
     """The region stage from the calibration part and `covariances [N, D, D]`, the fitted
     Σ' of its detections (None when there is no calibration part). None when `dims` lack
-    x or y (no ellipse to serve). `cell_floor`, `delta`: of `ConformalRegions`."""
+    x or y (no ellipse to serve). `cell_floor`, `delta`, `floor_delta`: of `ConformalRegions`."""
     if "x" not in dims or "y" not in dims:
         return None
     n_tp = 0 if calib is None else int(np.count_nonzero(calib[1].tp))
@@ -169,7 +170,8 @@ def fit_region_stage(calib: tuple[Dump, MatchResult] | None, covariances: np.nda
     tp = np.asarray(matched.tp, dtype=bool)
     scores = xy_mahalanobis(tp_residuals(dump, matched, dims), covariances[tp], dims)
     regions = ConformalRegions(distance_edges=(0.0, *distance_edges, float("inf")),
-                               min_group=min_group, cell_floor=cell_floor, delta=delta)
+                               min_group=min_group, cell_floor=cell_floor, delta=delta,
+                               floor_delta=floor_delta if cell_floor else None)
     regions.fit(scores, dump.det_labels[tp], dump.det_distance[tp],
                 all_classes=list(range(len(dump.classes))))
     return RegionFit("conformal", regions.to_dict(), n_tp, regions.guarantees(SUMMARY_LEVELS))

@@ -22,8 +22,9 @@ response batch (`calibrated_batch`) has `frame_id`, `row` (the request row), `id
 given), `label`, `label_index`,
 `score`, `score_raw`, `class_scores` (when the profile gives them), `covariance [D·D]`,
 `distance`, `ellipse` (a struct at the ellipse confidence) and one struct `ellipse_<q>` per
-requested level (`semi_major`, `semi_minor` — null when unbounded —, `angle`), plus
-`region_group` for conformal regions; its schema metadata names the profile.
+requested level (`semi_major`, `semi_minor` — null when unbounded —, `angle`, `guarantee`,
+`calibration_n` — null for gaussian regions), plus `region_group` for conformal regions; its
+schema metadata names the profile.
 """
 
 from __future__ import annotations
@@ -187,7 +188,8 @@ def calibrated_batch(res: CalibratedDetections, metadata: Mapping[str, Any]) -> 
     if res.ellipses is not None:
         columns["ellipse"] = _ellipse_struct(res.ellipses)
     for level, region in res.regions.items():
-        columns[f"ellipse_{float(level)!r}"] = _ellipse_struct(region)
+        columns[f"ellipse_{float(level)!r}"] = _ellipse_struct(
+            region, res.region_guarantees.get(level), res.region_counts.get(level))
     if res.region_groups is not None:
         columns["region_group"] = pa.array(res.region_groups, pa.string())
     meta = {"confidence": res.ellipse_confidence, "levels": [float(q) for q in res.regions],
@@ -291,9 +293,16 @@ def _fixed(values: np.ndarray) -> pa.FixedSizeListArray:
     return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])
 
 
-def _ellipse_struct(el: Any) -> pa.StructArray:
-    """semi_major, semi_minor (null where unbounded: inf) and angle of ellipses `[N]`."""
+def _ellipse_struct(el: Any, holds: np.ndarray | None = None,
+                    counts: np.ndarray | None = None) -> pa.StructArray:
+    """semi_major, semi_minor (null where unbounded: inf) and angle of ellipses `[N]`; with
+    `holds [N]` and `counts [N]` of a served level, its guarantee and calibration_n (null
+    where negative: gaussian)."""
     major, minor = (np.asarray(a, dtype=np.float64) for a in (el.semi_major, el.semi_minor))
     fields = [pa.array(a, mask=np.isinf(a)) for a in (major, minor)]
-    return pa.StructArray.from_arrays([*fields, pa.array(np.asarray(el.angle, np.float64))],
-                                      names=["semi_major", "semi_minor", "angle"])
+    fields.append(pa.array(np.asarray(el.angle, np.float64)))
+    names = ["semi_major", "semi_minor", "angle"]
+    if holds is not None and counts is not None:
+        fields += [pa.array(holds.tolist(), pa.string()), pa.array(counts, mask=counts < 0)]
+        names += ["guarantee", "calibration_n"]
+    return pa.StructArray.from_arrays(fields, names=names)

@@ -35,7 +35,7 @@ from calibrators.core.errors import FieldError
 from calibrators.covariance import source_arrays
 from calibrators.data import Dump
 from calibrators.evaluation import SUMMARY_LEVELS, match_dump, tp_residuals
-from calibrators.profile import CalibratedDetections, CalibrationProfile, group_name
+from calibrators.profile import CalibratedDetections, CalibrationProfile
 from calibrators.regions import DEFAULT_DISTANCE_EDGES, check_levels, distance_bins, xy_mahalanobis
 
 __all__ = ["HEALTH_LEVELS", "FrameEvidence", "HealthCounts", "RegionGroups", "collect_evidence",
@@ -194,7 +194,7 @@ def region_groups(profile: CalibrationProfile, source: str | None = None) -> Reg
         names = [f"{c} {_range_text(edges[b], edges[b + 1])}" for c in profile.classes
                  for b in range(edges.size - 1)]
         return RegionGroups(tuple(names), (float("inf"),) * len(names))
-    return RegionGroups(tuple(group_name(profile, conformal, g) for g in conformal.groups_),
+    return RegionGroups(tuple(conformal.group_name(g, profile.classes) for g in conformal.groups_),
                         tuple(float(g.n) for g in conformal.groups_))
 
 

@@ -10,7 +10,7 @@
 """
 
 from calibrators.profile._apply import apply_profile, check_profile_fits
-from calibrators.profile._calibrate import CalibratedDetections, calibrate_detections, group_name
+from calibrators.profile._calibrate import CalibratedDetections, calibrate_detections
 from calibrators.profile._detections import (
     WIRE_NAMES,
     Detections,
@@ -26,5 +26,5 @@ from calibrators.profile._serialise import SourceStage, score_stage, source_stag
 
 __all__ = ["WIRE_NAMES", "CalibratedDetections", "CalibrationProfile", "Detections",
            "SourceStage", "apply_profile", "box9", "calibrate_detections", "calibrated_records",
-           "check_profile_fits", "detections_from_records", "ellipses_json", "group_name",
+           "check_profile_fits", "detections_from_records", "ellipses_json",
            "label_index", "make_provenance", "score_stage", "source_stage", "unbounded_none"]

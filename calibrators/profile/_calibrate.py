@@ -2,23 +2,21 @@
 
 Class evidence: `logits [N, C']` (C' = C sigmoid, C + 1 softmax), or `layer_logits [N, L, C']`
 from every decoder layer (the last is the final layer), or raw `scores [N]` with `labels [N]`.
-The label is the arg-max of the raw final layer, or, with `labels [N]` beside the
-logits, the class each detection asserts (top-K (query, class) decoding: one query can give
-detections of several classes); it never changes. The score is
+The label is the arg-max of the raw final layer, or, with `labels [N]` beside the logits, the
+class each detection asserts (top-K (query, class) decoding); it never changes. The score is
 `sigmoid/softmax(z / T)` (version 1, and version 2 with the `temperature` method; from a raw
 score, `sigmoid(logit(p) / T)`), or the profile's per-class calibrator of the label's logit
 (`logit(p)` of a raw score; range-conditioned methods use the distance). A profile with
 `modulation` needs `layer_logits` (L >= 2): `z` is then modulated over all layers.
 `boxes [N, 9]` (required) give the distance `d` from `ego_xy [N, 2]` (default origin). Σ
-comes from the profile's `cov_source`: `covariances [N, D, D]` ("given"),
-`layer_boxes [N, L, 9]` ("layers", spread across decoder layers), `hyp_boxes [N, H, 9]` with
-`hyp_scores [N, H]` ("hypotheses", the group-score-weighted spread of the group heads' box
-hypotheses) or zeros ("none"). A profile serving several sources takes, of what the call
-carries, given covariances first, then the hypotheses, then the layer spread, then none;
-`layer_boxes` and the hypotheses are ignored when the profile does not serve their source.
-`Σ' = Σ + k_c·d·I`, or `s_c·Σ + k_c·d·I` with a shrinkage stage. Regions are ellipses of the
-x, y block of `Σ'` with semi-axes `r_q·sqrt(λ)`: `r_q = sqrt(χ²₂(q))` (gaussian) or the
-conformal radius of the detection's class × distance group.
+comes from the profile's `cov_source`: `covariances [N, D, D]` ("given"), `layer_boxes
+[N, L, 9]` ("layers", spread across decoder layers), `hyp_boxes [N, H, 9]` with `hyp_scores
+[N, H]` ("hypotheses", the score-weighted spread of the box hypotheses) or zeros ("none").
+A profile serving several sources takes, of what the call carries, given covariances first,
+then the hypotheses, then the layer spread, then none. `Σ' = Σ + k_c·d·I`, or
+`s_c·Σ + k_c·d·I` with a shrinkage stage. Regions are ellipses of the x, y block of `Σ'` with
+semi-axes `r_q·sqrt(λ)`: `r_q = sqrt(χ²₂(q))` (gaussian) or the conformal radius of the
+detection's class × distance group.
 """
 
 from __future__ import annotations
@@ -41,7 +39,13 @@ from calibrators.core.checks import (
 from calibrators.core.defaults import ELLIPSE_CONFIDENCE
 from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
-from calibrators.covariance import add_depth_term, check_hypotheses, source_covariance
+from calibrators.covariance import (
+    SOURCE_ARRAYS,
+    add_depth_term,
+    check_hypotheses,
+    source_covariance,
+    source_inputs,
+)
 from calibrators.regions import (
     MAX_LEVELS,
     Ellipse,
@@ -63,7 +67,6 @@ if TYPE_CHECKING:
     from calibrators.profile._detections import Detections
     from calibrators.profile._profile import CalibrationProfile
     from calibrators.profile._serialise import SourceStage
-    from calibrators.regions import ConformalGroup, ConformalRegions
 
 __all__ = ["CalibratedDetections", "calibrate_detections"]
 
@@ -73,16 +76,16 @@ class CalibratedDetections:
     """Result of `CalibrationProfile.calibrate` for N detections.
 
     labels [N] int64; scores [N] calibrated probability of the label; scores_raw [N] before
-    calibration; class_scores [N, C] calibrated (None for scores-only input or a per-class
-    score stage); covariances [N, D, D] = Σ'; ellipses of the x, y block at
-    `ellipse_confidence` (arrays [N]) or None; distances [N] m. regions: level -> ellipses
-    [N] for each requested level; region_method: `gaussian` | `conformal` (None without x, y);
-    region_groups: [N] the conformal group serving each detection, e.g. `car 15-30 m`
-    (None for gaussian); region_radii: level -> Mahalanobis radius [N] of each region;
-    cov_source: the covariance source that served the call (`given`, `layers`, `hypotheses`,
-    `none`). classes, cov_dims: the profile's; ellipse_confidence: the level of `ellipses`;
-    detections: the `Detections` batch calibrated (identity: frame ids, rows, user ids), when
-    it went through `Detections.calibrate`.
+    calibration; class_scores [N, C] (None for scores-only input or a per-class score stage);
+    covariances [N, D, D] = Σ'; ellipses at `ellipse_confidence` (arrays [N]) or None;
+    distances [N] m. Per requested level: regions (ellipses [N]), region_radii (Mahalanobis
+    radius [N]), region_guarantees ([N] what holds: cell, scaled, pooled, marginal, or none for
+    gaussian; `ConformalRegions.guarantee_table`), region_counts ([N] the calibration scores
+    behind it, -1 for gaussian). region_method: `gaussian` | `conformal` (None without x, y);
+    region_groups: [N] the serving conformal group, e.g. `car 15-30 m` (None for gaussian);
+    cov_source: the covariance source that served the call. classes, cov_dims: the
+    profile's; detections: the `Detections` batch calibrated (identity: frame ids, rows, user
+    ids), when it went through `Detections.calibrate`.
     """
 
     labels: np.ndarray
@@ -96,6 +99,8 @@ class CalibratedDetections:
     region_method: str | None = None
     region_groups: list[str] | None = None
     region_radii: dict[float, np.ndarray] = field(default_factory=dict)
+    region_guarantees: dict[float, np.ndarray] = field(default_factory=dict)
+    region_counts: dict[float, np.ndarray] = field(default_factory=dict)
     cov_source: str | None = None
     classes: tuple[str, ...] = ()
     cov_dims: tuple[str, ...] = ()
@@ -112,7 +117,8 @@ class CalibratedDetections:
         out, det = {f.name: getattr(self, f.name) for f in fields(self)}, self.detections
         out["ellipses"] = None if self.ellipses is None else self.ellipses._asdict()
         out["regions"] = {str(q): e._asdict() for q, e in self.regions.items()}
-        out["region_radii"] = {str(q): r for q, r in self.region_radii.items()}
+        for name in ("region_radii", "region_guarantees", "region_counts"):
+            out[name] = {str(q): r for q, r in getattr(self, name).items()}
         out["detections"] = None if det is None else {
             "frame_ids": det.frame_ids, "rows": det.rows, "ids": det.detection_ids}
         return to_jsonable(out)
@@ -163,26 +169,22 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
     labels_, scores_, raw, class_scores = _class_evidence(profile, logits, scores, labels,
                                                           layer_logits, distances)
     check_length("boxes", box, len(labels_), "the class evidence")
-    stage, base = _base_covariance(profile, covariances, layer_boxes, (hyp_boxes, hyp_scores),
-                                   n)
+    stage, base = _base_covariance(profile, covariances, layer_boxes, (hyp_boxes, hyp_scores), n)
     cov = _scaled(profile, stage, base, distances, labels_)
     wanted = None if levels is None else check_levels(levels)
     confidence = check_levels([ellipse_confidence], "ellipse_confidence")[0]
     served = [float(confidence)] + ([] if wanted is None else
                                     [float(q) for q in wanted if q != confidence])
-    regions, radii, method, groups = _regions(profile, stage, cov, distances, labels_, served)
-    out = CalibratedDetections(labels=labels_, scores=scores_, scores_raw=raw,
-                                class_scores=class_scores, covariances=cov,
-                                ellipses=regions.get(float(confidence)),
-                                distances=distances,
-                                regions={} if wanted is None or not regions
-                                else {float(q): regions[float(q)] for q in wanted},
-                                region_method=method, region_groups=groups,
-                                region_radii={} if wanted is None or not radii
-                                else {float(q): radii[float(q)] for q in wanted},
-                                cov_source=stage.source, classes=tuple(profile.classes),
-                                cov_dims=tuple(profile.cov_dims),
-                                ellipse_confidence=float(confidence))
+    regions, radii, method, groups, support = _regions(profile, stage, cov, distances,
+                                                       labels_, served)
+    out = CalibratedDetections(
+        labels=labels_, scores=scores_, scores_raw=raw, class_scores=class_scores,
+        covariances=cov, ellipses=regions.get(float(confidence)), distances=distances,
+        regions=_at(regions, wanted), region_method=method, region_groups=groups,
+        region_radii=_at(radii, wanted), region_guarantees=_at(support[0], wanted),
+        region_counts=_at(support[1], wanted), cov_source=stage.source,
+        classes=tuple(profile.classes), cov_dims=tuple(profile.cov_dims),
+        ellipse_confidence=float(confidence))
     _check_finite(out, covariances is not None, radii.get(float(confidence)))
     return out
 
@@ -321,26 +323,20 @@ def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None
     if "none" in stages:
         return stages["none"], np.zeros((n, dim, dim))
     for source in dict.fromkeys((profile.cov_source, "layers", "hypotheses")):
-        if source in stages and source in _NEEDS:
-            name, what = _NEEDS[source]
-            raise FieldError(name, f"{name}{what} (the profile's cov_source is "
-                                   f"{profile.cov_source!r}) is required{_takes(profile)}")
+        if source in stages and source in ("layers", "hypotheses"):
+            raise FieldError(next(iter(SOURCE_ARRAYS[source])),
+                             f"{source_inputs(source)} (the profile's cov_source is "
+                             f"{profile.cov_source!r}) is required{_takes(profile)}")
     raise FieldError("covariances", f"covariances are required: the profile was fit on given "
                                     f"covariances (cov_source 'given') over cov_dims "
                                     f"{list(profile.cov_dims)}")
-
-
-#: What a request must carry for a covariance source other than `given` and `none`.
-_NEEDS = {"layers": ("layer_boxes", ""), "hypotheses": ("hyp_boxes", " with hyp_scores")}
 
 
 def _takes(profile: CalibrationProfile) -> str:
     """`; it takes ...` for a profile serving several covariance sources."""
     if len(profile.source_stages) < 2:
         return ""
-    words = {"given": "covariances", "layers": "layer_boxes",
-             "hypotheses": "hyp_boxes with hyp_scores", "none": "neither"}
-    return "; it takes " + " or ".join(words[s] for s in profile.source_stages)
+    return "; it takes " + " or ".join(source_inputs(s) for s in profile.source_stages)
 
 
 def _scaled(profile: CalibrationProfile, stage: SourceStage, base: np.ndarray,
@@ -354,43 +350,47 @@ def _scaled(profile: CalibrationProfile, stage: SourceStage, base: np.ndarray,
 
 
 def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
-             distances: np.ndarray, labels: np.ndarray, levels: list[float]
-             ) -> tuple[dict[float, Ellipse], dict[float, np.ndarray], str | None,
-                        list[str] | None]:
+             distances: np.ndarray, labels: np.ndarray, levels: list[float]) -> tuple[
+        dict[float, Ellipse], dict[float, np.ndarray], str | None, list[str] | None,
+        tuple[dict[float, np.ndarray], dict[float, np.ndarray]]]:
     """Ellipses of the x, y block of `cov [N, D, D]` at each level, their radii `[N]`, the
-    method and the serving groups; ({}, {}, None, None) if cov_dims lack x or y."""
+    method, the serving groups, and per level what each guarantees and on how many calibration
+    scores `[N]`; ({}, {}, None, None, ({}, {})) if cov_dims lack x or y."""
     if "x" not in profile.cov_dims or "y" not in profile.cov_dims:
-        return {}, {}, None, None
+        return {}, {}, None, None, ({}, {})
     ix, iy = profile.cov_dims.index("x"), profile.cov_dims.index("y")
     block = cov[:, [ix, iy]][:, :, [ix, iy]]
     method, conformal = stage.region_method, stage.conformal
     n = len(labels)
     if conformal is None:
-        return ({float(q): ellipse(block, q) for q in levels},
-                {float(q): np.full(n, gaussian_radius(q)) for q in levels}, method, None)
-    # `levels` is the ellipse confidence plus up to MAX_LEVELS requested levels: radii() takes
-    # at most MAX_LEVELS at once
+        full = {float(q): (np.full(n, gaussian_radius(q)), np.full(n, "none", dtype=object),
+                           np.full(n, -1, dtype=np.int64)) for q in levels}
+        return ({float(q): ellipse(block, q) for q in levels}, {q: v[0] for q, v in full.items()},
+                method, None, ({q: v[1] for q, v in full.items()},
+                               {q: v[2] for q, v in full.items()}))
+    # `levels` is the ellipse confidence plus up to MAX_LEVELS requested levels: the tables
+    # take at most MAX_LEVELS at once
     index = conformal.group_index(labels, distances)
-    radii = np.concatenate([conformal.radius_table(levels[i:i + MAX_LEVELS])
-                            for i in range(0, len(levels), MAX_LEVELS)], axis=1)[index]
-    names = {int(g): group_name(profile, conformal, conformal.groups_[g])
+    chunks = [levels[i:i + MAX_LEVELS] for i in range(0, len(levels), MAX_LEVELS)]
+    radii = np.concatenate([conformal.radius_table(c) for c in chunks], axis=1)[index]
+    holds = [conformal.guarantee_table(c) for c in chunks]
+    names = np.concatenate([h[0] for h in holds], axis=1)[index]
+    counts = np.concatenate([h[1] for h in holds], axis=1)[index]
+    group = {int(g): conformal.group_name(conformal.groups_[g], profile.classes)
              for g in np.unique(index)}
     # Σ' was built from checked Σ (or a spread) by adding k·d·I: symmetric PSD, or an
     # overflow that `_check_finite` places
     return (dict(zip(map(float, levels), radius_ellipses(block, radii, check=False),
                      strict=True)),
             {float(q): radii[:, j] for j, q in enumerate(levels)}, method,
-            [names[g] for g in index.tolist()])
+            [group[g] for g in index.tolist()],
+            ({float(q): names[:, j] for j, q in enumerate(levels)},
+             {float(q): counts[:, j] for j, q in enumerate(levels)}))
 
 
-def group_name(profile: CalibrationProfile, conformal: ConformalRegions,
-                group: ConformalGroup) -> str:
-    """`car 15-30 m`, `pooled classes 30+ m`, ... of a conformal group."""
-    who = "pooled classes" if group.label is None else profile.classes[int(group.label)]
-    edges = conformal.edges_
-    lo, hi = edges[min(group.bins)], edges[max(group.bins) + 1]
-    where = f"{lo:g}+ m" if not np.isfinite(hi) else f"{lo:g}-{hi:g} m"
-    return f"{who} {where}"
+def _at(table: dict[float, Any], wanted: np.ndarray | None) -> dict[float, Any]:
+    """The entries of `table` at the `wanted` levels ({} when none or no table)."""
+    return {} if wanted is None or not table else {float(q): table[float(q)] for q in wanted}
 
 
 def _required(name: str, value: Any) -> Any:

@@ -291,8 +291,10 @@ def _plain(values: Any) -> list[Any]:
 def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, Any]] | None]:
     """Per detection of `calibrated` (`CalibrationProfile.calibrate(..., levels=...)`), its
     served regions as JSON: `{str(float(q)): {"semi_major": m, "semi_minor": m, "angle": rad,
-    "method": "conformal" | "gaussian", "group": "car 15-30 m" | None}}` for each level `q`
-    (the group is None for gaussian regions), or None when the profile's cov_dims lack x or y.
+    "method": "conformal" | "gaussian", "group": "car 15-30 m" | None, "guarantee": "cell" |
+    "scaled" | "pooled" | "marginal" | "none", "calibration_n": int | None}}` for each level `q`
+    (the group and count are None for gaussian regions), or None when the profile's cov_dims
+    lack x or y.
 
     The angle is the major axis's from +x (`calibrators.regions`). The semi-axes of an
     unbounded region (a level beyond what its conformal group certifies: infinite radius) are
@@ -303,7 +305,7 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
     method = calibrated.region_method
     if method is None:
         return [None] * n
-    groups = calibrated.region_groups
+    groups = calibrated.region_groups or [None] * n
     columns = []
     for level, region in calibrated.regions.items():
         key = str(float(level))
@@ -313,11 +315,16 @@ def ellipses_json(calibrated: CalibratedDetections) -> list[dict[str, dict[str, 
         arrays = [np.asarray(a, dtype=np.float64).reshape(n) for a in region]
         for name, arr in zip(("semi_major", "semi_minor", "angle"), arrays, strict=True):
             check_finite(f"ellipses[{key!r}].{name}", np.where(unbounded, 0.0, arr))
+        holds = calibrated.region_guarantees.get(level)
+        counts = calibrated.region_counts.get(level)
         columns.append((key, *(unbounded_none(a, unbounded) for a in arrays[:2]),
-                        arrays[2].tolist()))
+                        arrays[2].tolist(), [None] * n if holds is None else holds.tolist(),
+                        [None] * n if counts is None else
+                        [None if c < 0 else c for c in counts.tolist()]))
     return [{key: {"semi_major": major[i], "semi_minor": minor[i], "angle": angle[i],
-                   "method": method, "group": None if groups is None else groups[i]}
-             for key, major, minor, angle in columns} for i in range(n)]
+                   "method": method, "group": groups[i], "guarantee": hold[i],
+                   "calibration_n": count[i]}
+             for key, major, minor, angle, hold, count in columns} for i in range(n)]
 
 
 def unbounded_none(values: np.ndarray, unbounded: np.ndarray) -> list[float | None]:

@@ -51,6 +51,7 @@ from calibrators.regions._levels import (
     check_levels,
     distance_bins,
 )
+from calibrators.regions._partition import partition
 
 REASONS = ("own", "merged_bins", "pooled_classes", "global")
 
@@ -72,6 +73,8 @@ class ConformalRegions:
         >= q with probability >= 1 - delta over the draw (`_groups`).
     cell_floor : a cell served by a larger group (merged bins, pooled classes) also gets its
         own scores as a floor: the larger of its own radius and the group's (`_groups`).
+    floor_delta : None, or in (0, 1): with `cell_floor`, at levels >= 0.8 every cell floor
+        serves at least the cell's own training-conditional radius at this δ (`_groups`).
 
     Attributes set by `fit`: `classes_` (list), `edges_ [B + 1]`, `counts_ [C, B]` (scores
     per cell), `groups_` (list of `ConformalGroup`), `serving_ [C + 1, B]` (group index per
@@ -80,13 +83,15 @@ class ConformalRegions:
 
     def __init__(self, distance_edges: Sequence[float] = DEFAULT_DISTANCE_EDGES,
                  min_group: int = 100, n_exact: int = 500, max_ranks: int = 600,
-                 delta: float | None = None, cell_floor: bool = False) -> None:
+                 delta: float | None = None, cell_floor: bool = False,
+                 floor_delta: float | None = None) -> None:
         self.distance_edges = distance_edges
         self.min_group = min_group
         self.n_exact = n_exact
         self.max_ranks = max_ranks
         self.delta = delta
         self.cell_floor = cell_floor
+        self.floor_delta = floor_delta
 
     def fit(self, scores: np.ndarray, classes: np.ndarray, distances: np.ndarray,
             all_classes: Sequence[Hashable] | None = None) -> ConformalRegions:
@@ -100,6 +105,7 @@ class ConformalRegions:
         if n_exact > max_ranks:
             raise FieldError("n_exact", f"n_exact ({n_exact}) must be <= max_ranks ({max_ranks})")
         delta = _check_delta(self.delta)
+        floor_delta = _check_delta(self.floor_delta, "floor_delta")
         s = as_float_array("scores", scores, ndim=1)
         check_nonempty("scores", s)
         if (s < 0).any():
@@ -117,9 +123,10 @@ class ConformalRegions:
         counts = np.zeros((len(known), n_bins), dtype=np.int64)
         np.add.at(counts, (cls, bins), 1)
 
-        keys, reasons = _partition(counts, min_group)
+        keys, reasons = partition(counts, min_group)
         index: dict[tuple, int] = {}
-        self.__dict__.pop("_tables", None)   # radius tables of the previous fit
+        self.__dict__.pop("_tables", None)   # radius and guarantee tables of the previous fit
+        self.__dict__.pop("_guarantees", None)
         self.groups_: list[ConformalGroup] = []
         serving = np.zeros((len(known) + 1, n_bins), dtype=np.int64)  # last row: unknown
         small = [c for c in range(len(known)) if keys[c][0][0] == "pool"]
@@ -132,13 +139,14 @@ class ConformalRegions:
                 serving[c, b] = index[key]
         if self.cell_floor:
             self._add_cell_floors(keys, counts, (known, s, cls, bins), serving,
-                                  (n_exact, max_ranks, delta))
+                                  (n_exact, max_ranks, delta), floor_delta)
         self.reasons_ = [*reasons, ["global"] * n_bins]
         self.classes_, self.edges_, self.counts_, self.serving_ = known, edges, counts, serving
         return self
 
     def _add_cell_floors(self, keys: list[list[tuple]], counts: np.ndarray, data: tuple,
-                         serving: np.ndarray, storage: tuple) -> None:
+                         serving: np.ndarray, storage: tuple, floor_delta: float | None
+                         ) -> None:
         """Every cell with scores (`counts [C, B]`) that a larger group serves gets its own
         group with that group as its `base`, and serves from it (`_groups`). `data`: the
         fit's (classes, scores, class codes, bins); `storage`: (n_exact, max_ranks, delta)."""
@@ -147,19 +155,51 @@ class ConformalRegions:
                 if key == ("class", c, b, b) or counts[c, b] == 0:
                     continue
                 own = _group(("class", c, b, b), *data, [], *storage)
-                self.groups_.append(dataclasses.replace(own, base=self.groups_[serving[c, b]]))
+                self.groups_.append(dataclasses.replace(own, base=self.groups_[serving[c, b]],
+                                                        floor_delta=floor_delta))
                 serving[c, b] = len(self.groups_) - 1
 
     def guarantees(self, levels: Sequence[float]) -> list[dict[str, Any]]:
         """One row per class × bin: the calibration scores of the cell and of the group
-        serving it, and what holds at each of `levels` ("cell", "scaled", "pooled")."""
+        serving it, and what holds at each of `levels` (`guarantee_table`)."""
         check_fitted(self, "serving_")
         q = check_levels(levels)
+        names, _ = self.guarantee_table(q)
         return [{"class": label, "bin": b, "count": int(self.counts_[c, b]),
                  "group_n": group.n if group.base is None else group.base.n,
-                 "guarantee": dict(zip(map(str, q.tolist()), group.guarantee(q), strict=True))}
+                 "guarantee": dict(zip(map(str, q.tolist()), names[g].tolist(), strict=True))}
                 for c, label in enumerate(self.classes_) for b in range(self.edges_.size - 1)
-                for group in [self.groups_[int(self.serving_[c, b])]]]
+                for g in [int(self.serving_[c, b])] for group in [self.groups_[g]]]
+
+    def guarantee_table(self, levels: Sequence[float]) -> tuple[np.ndarray, np.ndarray]:
+        """What each group's radius guarantees at `levels [Q]` for the cells it serves, `[G, Q]`
+        ("cell": the cell's own scores certify it; "pooled": a group of merged bins or pooled
+        classes does; "marginal": only all scores together; "scaled": a cell floor's widened
+        group radius, no finite-sample guarantee of its own), and the calibration scores
+        behind it `[G, Q]` (int). A group serves one kind of cell, so this is per group."""
+        check_fitted(self, "serving_")
+        q = check_levels(levels)
+        tables = self.__dict__.setdefault("_guarantees", {})   # emptied by `fit`
+        hit = tables.get(q.tobytes())
+        if hit is None:
+            kinds = self._kinds()
+            rows = [g.guarantee(q, kinds[i]) for i, g in enumerate(self.groups_)]
+            hit = (np.array([r[0] for r in rows], dtype=object).reshape(len(rows), q.size),
+                   np.array([r[1] for r in rows], dtype=np.int64).reshape(len(rows), q.size))
+            if len(tables) < 64:
+                tables[q.tobytes()] = hit
+        return hit
+
+    def _kinds(self) -> list[str]:
+        """Per group, the guarantee its own radius gives the cells it serves (a cell floor:
+        its base group's), from why those cells are served by it (`reasons_`)."""
+        kind = {"own": "cell", "merged_bins": "pooled", "pooled_classes": "pooled",
+                "global": "marginal"}
+        out = ["marginal"] * len(self.groups_)   # a base whose cells all have floors
+        for c, row in enumerate(self.reasons_):
+            for b, reason in enumerate(row):
+                out[int(self.serving_[c, b])] = kind[reason]
+        return out
 
     def radii(self, levels: Sequence[float], classes: np.ndarray, distances: np.ndarray
               ) -> np.ndarray:
@@ -200,6 +240,13 @@ class ConformalRegions:
         return [{**self._describe(int(self.serving_[c, b])), "reason": self.reasons_[c][b]}
                 for c, b in zip(cls.tolist(), bins.tolist(), strict=True)]
 
+    def group_name(self, group: ConformalGroup, class_names: Sequence[str]) -> str:
+        """`car 15-30 m`, `pooled classes 30+ m`, ... of one of `groups_` (classes fit by
+        index, named by `class_names`)."""
+        who = "pooled classes" if group.label is None else class_names[int(group.label)]
+        lo, hi = self.edges_[min(group.bins)], self.edges_[max(group.bins) + 1]
+        return f"{who} {lo:g}+ m" if not np.isfinite(hi) else f"{who} {lo:g}-{hi:g} m"
+
     def serving_table(self) -> list[dict[str, Any]]:
         """One row per class × bin: scores in the cell, the serving group and why (plain JSON
         types; an inf distance edge is None)."""
@@ -216,8 +263,8 @@ class ConformalRegions:
         hyper = {"distance_edges": list(self.distance_edges), "min_group": self.min_group,
                  "n_exact": self.n_exact, "max_ranks": self.max_ranks}
         # written only when set: regions fit without them keep their earlier JSON
-        hyper.update({k: v for k, v in (("delta", self.delta), ("cell_floor", self.cell_floor))
-                      if v})
+        hyper.update({k: v for k, v in (("delta", self.delta), ("cell_floor", self.cell_floor),
+                                        ("floor_delta", self.floor_delta)) if v})
         index = {id(g): i for i, g in enumerate(self.groups_)}
         return to_jsonable({
             "hyper": hyper,
@@ -246,8 +293,9 @@ class ConformalRegions:
         self.counts_ = np.asarray(data["counts"], dtype=np.int64).reshape(
             len(self.classes_), self.edges_.size - 1)
         self.groups_, delta = [], _check_delta(self.delta)
+        floor_delta = _check_delta(self.floor_delta, "floor_delta")
         for i, g in enumerate(data["groups"]):
-            self.groups_.append(group_from_dict(i, g, self.groups_, delta))
+            self.groups_.append(group_from_dict(i, g, self.groups_, delta, floor_delta))
         self.serving_ = np.asarray(data["serving"], dtype=np.int64)
         if (self.serving_.shape != (len(self.classes_) + 1, self.edges_.size - 1)
                 or (self.serving_ < 0).any() or (self.serving_ >= len(self.groups_)).any()):
@@ -278,55 +326,10 @@ class ConformalRegions:
                 f"{prefix}n": group.n}
 
 
-def _partition(counts: np.ndarray, min_group: int) -> tuple[list[list[tuple]], list[list[str]]]:
-    """Group key and reason of every cell of `counts [C, B]`: a partition (module docstring).
-    Keys: ("class", c, lo, hi) for bins lo..hi of class c; ("pool", lo, hi) for bins lo..hi
-    of the classes too small on their own; ("all", 0, B - 1) for all scores."""
-    n_classes, n_bins = counts.shape
-    keys: list[list[tuple]] = [[] for _ in range(n_classes)]
-    reasons: list[list[str]] = [[] for _ in range(n_classes)]
-    small = [c for c in range(n_classes) if counts[c].sum() < min_group]
-    for c in range(n_classes):
-        if c in small:
-            continue
-        for lo, hi in _runs(counts[c], min_group):
-            keys[c] += [("class", c, lo, hi)] * (hi - lo + 1)
-            reasons[c] += ["own" if lo == hi else "merged_bins"] * (hi - lo + 1)
-    pooled = counts[small].sum(axis=0) if small else np.zeros(n_bins, dtype=np.int64)
-    enough = pooled.sum() >= min_group
-    runs = _runs(pooled, min_group) if enough else [(0, n_bins - 1)]
-    for c in small:
-        for lo, hi in runs:
-            keys[c] += [("pool" if enough else "all", lo, hi)] * (hi - lo + 1)
-            reasons[c] += ["pooled_classes" if enough else "global"] * (hi - lo + 1)
-    return keys, reasons
-
-
-def _runs(row: np.ndarray, min_group: int) -> list[tuple[int, int]]:
-    """Contiguous runs (lo, hi) of bins covering `row [B]`, each holding >= `min_group`
-    (the smallest run merged into its smaller neighbour until all do; needs
-    `row.sum() >= min_group`, else one run)."""
-    runs = [(b, b) for b in range(row.size)]
-
-    def total(run: tuple[int, int]) -> int:
-        return int(row[run[0]:run[1] + 1].sum())
-
-    while len(runs) > 1:
-        i = min(range(len(runs)), key=lambda j: (total(runs[j]), j))
-        if total(runs[i]) >= min_group:
-            break
-        left = total(runs[i - 1]) if i > 0 else None
-        right = total(runs[i + 1]) if i < len(runs) - 1 else None
-        j = i - 1 if right is None or (left is not None and left <= right) else i + 1
-        lo, hi = min(i, j), max(i, j)
-        runs[lo:hi + 1] = [(runs[lo][0], runs[hi][1])]
-    return runs
-
-
 def _group(key: tuple, known: list, s: np.ndarray, cls: np.ndarray, bins: np.ndarray,
            small: list[int], n_exact: int, max_ranks: int, delta: float | None = None
            ) -> ConformalGroup:
-    """The stored table of the group `key` (see `_partition`)."""
+    """The stored table of the group `key` (see `partition`)."""
     lo, hi = key[-2:]
     mask = (bins >= lo) & (bins <= hi)
     if key[0] == "class":
@@ -340,13 +343,13 @@ def _group(key: tuple, known: list, s: np.ndarray, cls: np.ndarray, bins: np.nda
                           values[ranks - 1] if values.size else values, delta)
 
 
-def _check_delta(delta: Any) -> float | None:
-    """`delta` as a float in (0, 1), or None; FieldError naming `delta` otherwise."""
+def _check_delta(delta: Any, name: str = "delta") -> float | None:
+    """`delta` as a float in (0, 1), or None; FieldError naming `name` otherwise."""
     if delta is None:
         return None
     if isinstance(delta, bool) or not isinstance(delta, int | float) \
             or not 0.0 < float(delta) < 1.0:
-        raise FieldError("delta", f"delta must be a number in (0, 1) or None, got {delta!r}")
+        raise FieldError(name, f"{name} must be a number in (0, 1) or None, got {delta!r}")
     return float(delta)
 
 

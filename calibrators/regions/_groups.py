@@ -17,6 +17,12 @@ at a level.
   are than the group's at the highest anchor level it can certify ("scaled"). Elsewhere the
   group's radius is served as it is ("pooled"): a floor on every cell would be the largest of
   a handful of scores in a small cell and over-cover it.
+- Tail floors (`floor_delta`): at levels >= `TAIL_FROM` a cell floor is served whatever the
+  test says: the larger of its group's radius and its own training-conditional radius at
+  `floor_delta` (or the group's radius widened as above where the cell is too small for that
+  rank). A cell's own scores are too few for the test to see a wider tail, and a tail level is
+  the bound a planner reads: there the cell keeps its own guarantee with probability
+  >= 1 - floor_delta over the calibration draw. Below `TAIL_FROM` the test decides, as above.
 """
 
 from __future__ import annotations
@@ -33,7 +39,9 @@ from calibrators.core.checks import as_float_array
 _TAIL_STEP, _BULK_STEP = 0.03, 0.004  # rank spacing: of the tail mass above, of n
 #: Levels at which a cell too small for a served level compares its width with its group's.
 ANCHOR_LEVELS = np.array([0.5, 0.8, 0.9, 0.95])
-GUARANTEES = ("cell", "scaled", "pooled")
+GUARANTEES = ("cell", "scaled", "pooled", "marginal", "none")
+#: The lowest level at which a tail floor (`floor_delta`) serves every cell floor.
+TAIL_FROM = 0.8
 #: The binomial test's level: a cell whose scores beyond its group's radius are this improbable
 #: for a cell covered at q is served its floor.
 FLOOR_ALPHA = 0.05
@@ -55,7 +63,8 @@ class ConformalGroup:
     """The scores of one group: `label` (None = all classes), distance `bins` (lo, hi)
     inclusive, `n` scores, and their order statistics `values [R]` at `ranks [R]`
     (1-based, increasing, always including n). `delta`: the PAC level (None: marginal).
-    `base`: for a cell floor, the group that served the cell before (module docstring)."""
+    `base`: for a cell floor, the group that served the cell before; `floor_delta`: its tail
+    floor's PAC level (None: no tail floor; module docstring)."""
 
     label: Hashable | None
     bins: tuple[int, int]
@@ -64,6 +73,7 @@ class ConformalGroup:
     values: np.ndarray
     delta: float | None = None
     base: ConformalGroup | None = None
+    floor_delta: float | None = None
 
     def own_radius(self, levels: np.ndarray, delta: float | None = None) -> np.ndarray:
         """Radii `[Q]` of this group's own scores at checked `levels [Q]`: the stored order
@@ -81,19 +91,39 @@ class ConformalGroup:
         if self.base is None:
             return own
         pooled = self.base.radius(levels)
-        floor = np.where(np.isfinite(own), np.maximum(own, pooled), pooled * self._width())
-        return np.where(self._floored(levels, pooled), floor, pooled)
+        served = np.where(self._floored(levels, pooled), self._floor(own, pooled), pooled)
+        if self.floor_delta is None:
+            return served
+        return np.where(levels >= TAIL_FROM, self._floor(self._tail_own(levels), pooled), served)
 
-    def guarantee(self, levels: np.ndarray) -> list[str]:
-        """What holds for the cell at each of `levels [Q]`: "cell", "scaled" or "pooled"
-        (a group that is no cell floor: "cell" where its radius is finite, else "pooled")."""
-        own = np.isfinite(self.own_radius(levels, self.delta))
+    def _floor(self, own: np.ndarray, pooled: np.ndarray) -> np.ndarray:
+        """The larger of the cell's `own` and its group's `pooled` radii `[Q]`; where its own
+        is infinite (too few scores), the group's widened by the cell's width."""
+        return np.where(np.isfinite(own), np.maximum(own, pooled), pooled * self._width())
+
+    def _tail_own(self, levels: np.ndarray) -> np.ndarray:
+        """The cell's own radii `[Q]` at the tail floor's PAC level (the stricter of it and
+        `delta`)."""
+        assert self.floor_delta is not None
+        return self.own_radius(levels, min(self.floor_delta, self.delta or 1.0))
+
+    def guarantee(self, levels: np.ndarray, kind: str = "cell") -> tuple[list[str], list[int]]:
+        """What holds for the cell this group serves at each of `levels [Q]`, and the
+        calibration scores behind it: a cell floor serves "cell" (its own radius, its own n)
+        or "scaled" (its group's radius widened, the group's n) where floored, elsewhere what
+        its group gives; a plain group gives `kind` ("cell" for a single class × bin,
+        "pooled" for merged bins or pooled classes, "marginal" for all scores) with its n."""
         if self.base is None:
-            return ["cell" if o else "pooled" for o in own.tolist()]
+            return [kind] * levels.size, [self.n] * levels.size
         floored = self._floored(levels, self.base.radius(levels))
-        scaled = self._width() > 1.0
-        return ["pooled" if not f else "cell" if o else "scaled" if scaled else "pooled"
-                for o, f in zip(own.tolist(), floored.tolist(), strict=True)]
+        own = np.isfinite(self.own_radius(levels, self.delta))
+        if self.floor_delta is not None:
+            tail = levels >= TAIL_FROM
+            floored, own = floored | tail, np.where(tail, np.isfinite(self._tail_own(levels)), own)
+        wider = self._width() > 1.0
+        names = [("cell" if o else "scaled" if wider else kind) if f else kind
+                 for o, f in zip(own.tolist(), floored.tolist(), strict=True)]
+        return names, [self.n if g == "cell" else self.base.n for g in names]
 
     def _floored(self, levels: np.ndarray, pooled: np.ndarray) -> np.ndarray:
         """`[Q]` bool: the cell is served its floor at `levels`: its scores show the group's
@@ -153,8 +183,10 @@ def group_to_dict(g: ConformalGroup, index: dict[int, int]) -> dict[str, Any]:
 
 
 def group_from_dict(i: int, g: dict[str, Any], groups: list[ConformalGroup],
-                    delta: float | None = None) -> ConformalGroup:
-    """Group `i` from its JSON form; `groups` are the groups before it (a `base` is one)."""
+                    delta: float | None = None, floor_delta: float | None = None
+                    ) -> ConformalGroup:
+    """Group `i` from its JSON form; `groups` are the groups before it (a `base` is one); a
+    cell floor gets `floor_delta`."""
     ranks = np.asarray(g["ranks"], dtype=np.int64)
     values = as_float_array(f"groups[{i}].values", g["values"], ndim=1)
     n = int(g["n"])
@@ -164,4 +196,5 @@ def group_from_dict(i: int, g: dict[str, Any], groups: list[ConformalGroup],
     if base is not None and not (isinstance(base, int) and 0 <= base < len(groups)):
         raise ValueError(f"groups[{i}].base must index a group before it, got {base!r}")
     return ConformalGroup(g["class"], (int(g["bins"][0]), int(g["bins"][1])), n, ranks, values,
-                          delta, None if base is None else groups[base])
+                          delta, None if base is None else groups[base],
+                          None if base is None else floor_delta)

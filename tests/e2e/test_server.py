@@ -48,7 +48,9 @@ def test_calibrate_changes_scores_not_labels_and_ellipses_grow(http, fitted, dum
              "covariance": cov} for d in (5, 15, 30, 45, 60)]
     rows = http.post("/v1/calibrate", json={"frames": [{"detections": dets}]}).json()[
         "frames"][0]["detections"]
-    major = [d["ellipse"]["semi_major"] for d in rows]
+    # within one conformal cell (30+ m: one radius) the ellipse grows with Σ' = Σ + k·d·I;
+    # across cells each cell's own radius serves (a near cell's tail floor may be wider)
+    major = [d["ellipse"]["semi_major"] for d in rows[2:]]
     assert all(b > a for a, b in zip(major, major[1:], strict=False)), major
     np.testing.assert_allclose([d["covariance"][0][0] for d in rows],
                                [0.05 + k * d for d in (5, 15, 30, 45, 60)])

@@ -26,7 +26,8 @@ from calibrators.regions import ellipse
 
 CAL, NUS, DET = "/v1/calibrate", "/v1/calibrate/nuscenes", "/v1/detect"
 JSON = {"content-type": "application/json"}
-LEVEL_KEYS = {"semi_major", "semi_minor", "angle", "method", "group"}
+LEVEL_KEYS = {"semi_major", "semi_minor", "angle", "method", "group", "guarantee",
+              "calibration_n"}
 GROUP = re.compile(r"^(pooled classes|[a-z_]+) \d+(-\d+|\+) m$")
 N = 40   # detections of the dump sent per request
 
@@ -97,7 +98,10 @@ def test_levels_are_nested_and_match_the_library(client, dump_given, detection,
         assert list(row["ellipses"]) == keys == ["0.5", "0.9", "0.95", "0.99"]
         major = [row["ellipses"][k]["semi_major"] for k in keys]
         minor = [row["ellipses"][k]["semi_minor"] for k in keys]
-        assert (np.diff(major) > 0).all() and (np.diff(minor) > 0).all()   # nested: grows with q
+        # nested: never shrinks with q (a small cell's tail floor may serve its largest score
+        # at two levels)
+        assert (np.diff(major) >= 0).all() and (np.diff(minor) >= 0).all()
+        assert major[-1] > major[0] and minor[-1] > minor[0]
         assert len({row["ellipses"][k]["angle"] for k in keys}) == 1
         for q, k in zip(levels, keys, strict=True):
             assert row["ellipses"][k]["semi_major"] == pytest.approx(ref.regions[q].semi_major[j])
@@ -119,6 +123,24 @@ def test_a_conformal_profile_names_its_method_and_group(client, dump_given, dete
             ref.regions[0.9].semi_major[j])
 
 
+def test_each_served_ellipse_says_what_holds_for_it(client, dump_given, detection,
+                                                     conformal_json):
+    """`guarantee` and `calibration_n` of every ellipse are its conformal group's row of
+    `ConformalRegions.guarantee_table` (the profile's record of what holds per cell)."""
+    levels = [0.5, 0.9, 0.99]
+    rows = _calibrate(client, dump_given, detection, profile="conformal", levels=levels)
+    prof, ref = CalibrationProfile.from_json(conformal_json), _reference(conformal_json,
+                                                                          dump_given, levels)
+    conformal = prof.source_stages[prof.cov_source].conformal
+    names, counts = conformal.guarantee_table(levels)
+    index = conformal.group_index(ref.labels, ref.distances)
+    for j, row in enumerate(rows):
+        for k, q in enumerate(levels):
+            served = row["ellipses"][str(q)]
+            assert served["guarantee"] == names[index[j], k] == ref.region_guarantees[q][j]
+            assert served["calibration_n"] == counts[index[j], k] > 0
+
+
 def test_a_version_1_profile_serves_as_before_plus_gaussian_ellipses(client, dump_given,
                                                                      detection, thesis_json):
     before = {"id", "label", "label_index", "score", "score_raw", "class_scores", "box",
@@ -138,6 +160,7 @@ def test_a_version_1_profile_serves_as_before_plus_gaussian_ellipses(client, dum
             served = row["ellipses"][str(q)]
             gauss = ellipse(old.covariances[j], q)     # χ²₂ radius on Σ' (cov_dims x, y)
             assert served["method"] == "gaussian" and served["group"] is None
+            assert served["guarantee"] == "none" and served["calibration_n"] is None
             assert served["semi_major"] == pytest.approx(gauss.semi_major)
             assert served["semi_minor"] == pytest.approx(gauss.semi_minor)
 

@@ -15,7 +15,8 @@ from calibrators.io import save_dump, save_nuscenes
 from calibrators.profile import CalibrationProfile
 from tests.app.cli.detcal_process import detcal
 
-LEVEL_KEYS = {"semi_major", "semi_minor", "angle", "method", "group"}
+LEVEL_KEYS = {"semi_major", "semi_minor", "angle", "method", "group", "guarantee",
+              "calibration_n"}
 
 
 @pytest.fixture(scope="module")

@@ -101,16 +101,24 @@ def _served(method="conformal", groups=("car 0-15 m", "car 15-30 m", "pooled cla
         labels=np.zeros(3, dtype=np.int64), scores=np.full(3, 0.5), scores_raw=np.full(3, 0.6),
         class_scores=None, covariances=np.tile(np.eye(2), (3, 1, 1)), ellipses=None,
         distances=np.array([5.0, 20.0, 40.0]), regions=regions, region_method=method,
-        region_groups=None if groups is None else list(groups))
+        region_groups=None if groups is None else list(groups),
+        region_guarantees={} if method is None else {
+            q: np.array(["cell", "pooled", "marginal"] if groups else ["none"] * 3, dtype=object)
+            for q in regions},
+        region_counts={} if method is None else {
+            q: np.array([120, 300, 900] if groups else [-1] * 3) for q in regions})
 
 
 def test_ellipses_json_keys_levels_as_str_of_float():
     rows = ellipses_json(_served())
     assert list(rows[1]) == ["0.5", "0.9"]
     assert rows[1]["0.9"] == {"semi_major": 4.0, "semi_minor": 2.0, "angle": 0.3,
-                              "method": "conformal", "group": "car 15-30 m"}
+                              "method": "conformal", "group": "car 15-30 m",
+                              "guarantee": "pooled", "calibration_n": 300}
     gauss = ellipses_json(_served("gaussian", None))
-    assert all(r["0.5"]["method"] == "gaussian" and r["0.5"]["group"] is None for r in gauss)
+    assert all(r["0.5"]["method"] == "gaussian" and r["0.5"]["group"] is None
+               and r["0.5"]["guarantee"] == "none" and r["0.5"]["calibration_n"] is None
+               for r in gauss)
     assert ellipses_json(_served(None, None)) == [None, None, None]   # cov_dims lack x, y
 
 
