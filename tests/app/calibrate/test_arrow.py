@@ -60,6 +60,11 @@ def test_arrow_and_json_give_the_same_floats(client, dump_given, detection, prof
     assert table["id"].to_pylist() == list(range(n))
     assert table["label"].to_pylist() == [d["label"] for d in dets]
     assert_same_floats(table, dets)
+    for q in ("0.5", "0.9"):   # what holds for each ellipse, as in JSON
+        served = table[f"ellipse_{q}"].to_pylist()
+        assert [r["guarantee"] for r in served] == [d["ellipses"][q]["guarantee"] for d in dets]
+        assert [r["calibration_n"] for r in served] == [d["ellipses"][q]["calibration_n"]
+                                                         for d in dets]
 
 
 @pytest.mark.parametrize(("change", "status", "loc"), [
