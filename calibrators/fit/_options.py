@@ -113,6 +113,11 @@ class FitOptions:
                                       "least its level with probability >= 1 - region_delta "
                                       "over the calibration draw (none: on average)", float,
                                       nullable=True)
+    score_shrink: float | None = _opt(None, "per-class score calibrators: a class with n true "
+                                      "positives serves n/(n + score_shrink) of its own fit "
+                                      "and the rest of the pooled one (none: chosen on the "
+                                      "calibration part by held-out NLL)", float,
+                                      nullable=True)
     floor_delta: float | None = _opt(0.2, "conformal regions with cell floors: at levels of "
                                      "0.8 and above every cell floor serves at least the "
                                      "cell's own "
@@ -162,6 +167,11 @@ class FitOptions:
             if not isinstance(getattr(self, name), bool):
                 raise OptionError(name, f"{name} must be True or False, got "
                                         f"{getattr(self, name)!r}")
+        if self.score_shrink is not None:
+            set_(self, "score_shrink", _number("score_shrink", self.score_shrink))
+            if not 0.0 <= self.score_shrink < math.inf:
+                raise OptionError("score_shrink", f"score_shrink must be a finite number >= 0 "
+                                                  f"or none, got {self.score_shrink}")
         for name in ("region_delta", "floor_delta"):
             if getattr(self, name) is not None:
                 set_(self, name, _number(name, getattr(self, name)))

@@ -93,7 +93,8 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
     scores = fit_score_stage(fit_part, matched.tp, train[0], train[1].tp,
                              None if calib is None else calib[0],
                              None if calib is None else calib[1].tp,
-                             opts.score_method, opts.modulation, opts.min_samples)
+                             opts.score_method, opts.modulation, opts.min_samples,
+                             opts.score_shrink)
 
     report_progress("covariance", 0.4)
     conformal = calib is not None and opts.region_method != "gaussian"
@@ -207,7 +208,8 @@ def selection_of(scores: ScoreFit, cov: CovarianceFit, region: RegionFit | None,
                  classes: tuple[str, ...] | None = None) -> dict[str, Any]:
     """The report's `selection`: the chosen method of each stage and its candidates' scores,
     and per conformal cell what its regions guarantee (`classes` name the cells)."""
-    return {"score": {"chosen": scores.method, "candidates": scores.candidates},
+    return {"score": {"chosen": scores.method, "candidates": scores.candidates,
+                      "shrink": scores.shrink, "shrink_candidates": scores.shrink_candidates},
             "covariance": {"chosen": cov.method, "candidates": cov.candidates},
             "regions": None if region is None else {
                 "chosen": region.method, "calibration_tps": region.n_calibration,

@@ -4,6 +4,11 @@ its pooled fallback, serving by class, and the plain-dict form a profile stores.
 A subclass names its `method`, its hyper-parameters (`_hyper`), and two small functions:
 `_fit_one(z [n], hit [n], d [n] | None) -> params` (a float64 array) and
 `_apply(params, z [m], d [m] | None) -> p [m]`, strictly increasing in `z` for fixed `d`.
+
+Shrinkage (`shrink` = κ >= 0, every calibrator's last hyper-parameter): a class with `n`
+true positives serves `w·p_class + (1 - w)·p_pooled` with `w = n / (n + κ)`, so a small class
+leans on the pooled fit by its sample size (κ = 0: its own fit alone). Both terms increase in
+`z`, so the blend does too.
 """
 
 from __future__ import annotations
@@ -42,6 +47,7 @@ class ClasswiseCalibrator:
 
     min_samples: int
     min_each: int
+    shrink: float = 0.0
 
     # -- subclass hooks ----------------------------------------------------------------------
     def _check_hyper(self) -> None:
@@ -67,6 +73,7 @@ class ClasswiseCalibrator:
         >= 0; used only by a range term); returns self."""
         min_samples = check_min_samples(self.min_samples)
         min_each = check_n_bins("min_each", self.min_each, minimum=1)
+        check_shrink(self.shrink)
         self._check_hyper()
         c = check_n_bins("n_classes", n_classes, minimum=1)
         x, y, d = self._inputs(z, labels, distances, c)
@@ -98,10 +105,25 @@ class ClasswiseCalibrator:
         check_fitted(self, "params_")
         x, y, d = self._inputs(z, labels, distances, self.n_classes_, empty_ok=True)
         out = np.empty(x.shape[0])
+        weights = self.class_weights()
         for k, rows in enumerate(_rows_by_class(y, self.n_classes_)):
             if rows.size:
-                out[rows] = self._apply(self.params_[k], x[rows], None if d is None else d[rows])
+                dk = None if d is None else d[rows]
+                out[rows] = self._apply(self.params_[k], x[rows], dk)
+                if weights[k] < 1.0:
+                    pooled = self._apply(self.pooled_params_, x[rows], dk)
+                    out[rows] = weights[k] * out[rows] + (1.0 - weights[k]) * pooled
         return out
+
+    def class_weights(self) -> np.ndarray:
+        """`[C]` weight of each class's own fit against the pooled one: `n / (n + shrink)` of
+        its true positives (1 without shrinkage; a fallback class serves the pooled fit)."""
+        check_fitted(self, "params_")
+        kappa = check_shrink(self.shrink)
+        if kappa == 0.0:
+            return np.ones(self.n_classes_)
+        n = self.n_positives_.astype(np.float64)
+        return n / (n + kappa)
 
     def fit_transform(self, z: np.ndarray, labels: np.ndarray, tp: np.ndarray, n_classes: int,
                       distances: np.ndarray | None = None) -> np.ndarray:
@@ -115,7 +137,9 @@ class ClasswiseCalibrator:
         fallback = set(self.fallback_classes_)
         return to_jsonable({
             "method": self.method_name,
-            "hyper": {name: getattr(self, name) for name in self._hyper},
+            # shrink is written only when set: calibrators fit without it keep their JSON
+            "hyper": {name: getattr(self, name) for name in self._hyper
+                      if name != "shrink" or self.shrink},
             "n_classes": self.n_classes_,
             "pooled": self.pooled_params_,
             "classes": [None if k in fallback else p for k, p in enumerate(self.params_)],
@@ -187,6 +211,14 @@ def _rows_by_class(labels: np.ndarray, n_classes: int) -> list[np.ndarray]:
     order = np.argsort(labels, kind="stable")
     bounds = np.searchsorted(labels[order], np.arange(n_classes + 1))
     return [order[bounds[k]:bounds[k + 1]] for k in range(n_classes)]
+
+
+def check_shrink(shrink: Any) -> float:
+    """`shrink` as a float >= 0; FieldError naming it otherwise."""
+    if isinstance(shrink, bool) or not isinstance(shrink, int | float) \
+            or not 0.0 <= float(shrink) < np.inf:
+        raise FieldError("shrink", f"shrink must be a finite number >= 0, got {shrink!r}")
+    return float(shrink)
 
 
 def dict_key(data: dict[str, Any], key: str, what: str = "score calibrator") -> Any:

@@ -33,10 +33,12 @@ class ClassTemperatureScaler(ClasswiseCalibrator):
     method = "class_temperature"
     _param_size = 1
     _param_text = "[T] with T > 0"
-    _hyper = ("min_samples", "min_each", "bounds", "xtol")
+    _hyper = ("min_samples", "min_each", "bounds", "xtol", "shrink")
 
     def __init__(self, min_samples: int = 50, min_each: int = 5,
-                 bounds: tuple[float, float] = (0.01, 100.0), xtol: float = 1e-7) -> None:
+                 bounds: tuple[float, float] = (0.01, 100.0), xtol: float = 1e-7,
+                 shrink: float = 0.0) -> None:
+        self.shrink = shrink
         self.min_samples = min_samples
         self.min_each = min_each
         self.bounds = bounds

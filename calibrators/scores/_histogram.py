@@ -33,11 +33,13 @@ class HistogramBinning(KnotCalibrator):
     """
 
     method = "histogram"
-    _hyper = ("min_samples", "min_each", "n_bins", "prior", "eps", "tie_break")
+    _hyper = ("min_samples", "min_each", "n_bins", "prior", "eps", "tie_break",
+              "shrink")
 
     def __init__(self, min_samples: int = 50, min_each: int = 5, n_bins: int = 15,
                  prior: tuple[float, float] = (1.0, 1.0), eps: float = 1e-3,
-                 tie_break: float = 1e-6) -> None:
+                 tie_break: float = 1e-6, shrink: float = 0.0) -> None:
+        self.shrink = shrink
         self.min_samples = min_samples
         self.min_each = min_each
         self.n_bins = n_bins

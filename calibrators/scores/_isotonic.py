@@ -29,10 +29,11 @@ class IsotonicCalibrator(KnotCalibrator):
     """
 
     method = "isotonic"
-    _hyper = ("min_samples", "min_each", "max_knots", "eps", "tie_break")
+    _hyper = ("min_samples", "min_each", "max_knots", "eps", "tie_break", "shrink")
 
     def __init__(self, min_samples: int = 50, min_each: int = 5, max_knots: int = 200,
-                 eps: float = 1e-3, tie_break: float = 1e-6) -> None:
+                 eps: float = 1e-3, tie_break: float = 1e-6, shrink: float = 0.0) -> None:
+        self.shrink = shrink
         self.min_samples = min_samples
         self.min_each = min_each
         self.max_knots = max_knots

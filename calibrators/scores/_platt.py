@@ -36,10 +36,11 @@ class PlattScaler(ClasswiseCalibrator):
     method = "platt"
     _param_size = 3
     _param_text = "[a, b, g] with a > 0"
-    _hyper = ("range_term", "min_samples", "min_each", "l2", "min_slope")
+    _hyper = ("range_term", "min_samples", "min_each", "l2", "min_slope", "shrink")
 
     def __init__(self, range_term: bool = False, min_samples: int = 50, min_each: int = 5,
-                 l2: float = 1.0, min_slope: float = 1e-6) -> None:
+                 l2: float = 1.0, min_slope: float = 1e-6, shrink: float = 0.0) -> None:
+        self.shrink = shrink
         self.range_term = range_term
         self.min_samples = min_samples
         self.min_each = min_each

@@ -55,6 +55,7 @@ from detectors.export.scores import (
     LabelLogitScores,
     Modulation,
     Platt,
+    Shrunk,
     TemperatureScores,
     given_raw,
     labels_and_raw,
@@ -299,15 +300,30 @@ def _source(profile: CalibrationProfile, source: str) -> SourceStage:
 
 
 def _calibrator(method: str, calibrator: Any) -> nn.Module:
-    """The torch module of a fitted per-class score calibrator."""
+    """The torch module of a fitted per-class score calibrator (with its shrinkage toward the
+    pooled fit, `Shrunk`, where it has one)."""
+    if method not in _SCORE_METHODS:
+        raise ExportError(f"score_calibration.method {method!r} cannot be exported as a graph")
+    own = _per_class(method, calibrator, list(calibrator.params_))
+    weights = calibrator.class_weights()
+    if (weights == 1.0).all():
+        return own
+    pooled = _per_class(method, calibrator, [calibrator.pooled_params_])
+    return Shrunk(own, pooled, torch.as_tensor(weights))
+
+
+def _per_class(method: str, calibrator: Any, params: list[np.ndarray]) -> nn.Module:
+    """The module serving per-class `params` (a class's row each) of `calibrator`."""
     if method == "class_temperature":
-        return ClassTemperature(torch.as_tensor(calibrator.temperature_))
+        return ClassTemperature(torch.as_tensor(np.array([p[0] for p in params])))
     if method in ("platt", "platt_range"):
-        return Platt(torch.as_tensor(calibrator.coef_), bool(calibrator.range_term))
-    if method in ("isotonic", "histogram"):
-        x, y = _padded_knots(calibrator.knots_)
-        return Knots(x, y, float(calibrator.eps), float(calibrator.tie_break))
-    raise ExportError(f"score_calibration.method {method!r} cannot be exported as a graph")
+        return Platt(torch.as_tensor(np.stack(params)), bool(calibrator.range_term))
+    x, y = _padded_knots(params)   # isotonic, histogram
+    return Knots(x, y, float(calibrator.eps), float(calibrator.tie_break))
+
+
+#: The per-class score methods a graph serves.
+_SCORE_METHODS = ("class_temperature", "platt", "platt_range", "isotonic", "histogram")
 
 
 def _padded_knots(tables: list[np.ndarray]) -> tuple[Tensor, Tensor]:

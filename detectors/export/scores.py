@@ -122,6 +122,21 @@ class Knots(nn.Module):
         return (1.0 - self.tie_break) * p + self.tie_break * torch.sigmoid(z)
 
 
+class Shrunk(nn.Module):
+    """`w_c·own + (1 − w_c)·pooled` (`calibrators.scores`: shrinkage toward the pooled fit);
+    `pooled` is a one-class module, `weights [C]`."""
+
+    def __init__(self, own: nn.Module, pooled: nn.Module, weights: Tensor) -> None:
+        super().__init__()
+        self.own, self.pooled = own, pooled
+        self.register_buffer("weights", weights.to(torch.float64))
+
+    def forward(self, z: Tensor, labels: Tensor, distances: Tensor) -> Tensor:
+        w = self.weights[labels]
+        pooled = self.pooled(z, torch.zeros_like(labels), distances)
+        return w * self.own(z, labels, distances) + (1.0 - w) * pooled
+
+
 class LabelLogitScores(nn.Module):
     """A per-class calibrator of the label's logit (`calibrators.scores.label_logit`: the
     label's column in sigmoid mode, the clipped `logit(p_label)` of the softmax at T = 1 in
