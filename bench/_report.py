@@ -23,9 +23,10 @@ def machine() -> str:
            f"Python {platform.python_version()}"
 
 
-def write_section(name: str, markdown: str) -> None:
-    """Replace (or append) the section `name` of docs/benchmarks.md with `markdown`."""
-    text = DOC.read_text() if DOC.exists() else HEADER
+def write_section(name: str, markdown: str, doc: Path = DOC, header: str = HEADER) -> None:
+    """Replace (or append) the section `name` of `doc` (docs/benchmarks.md; a new file starts
+    with `header`) with `markdown`."""
+    text = doc.read_text() if doc.exists() else header
     stamp = datetime.now(UTC).strftime("%Y-%m-%d")
     body = f"<!-- bench:{name} -->\n{markdown.rstrip()}\n\n_Measured {stamp} on {machine()}._\n" \
            f"<!-- /bench:{name} -->"
@@ -35,8 +36,8 @@ def write_section(name: str, markdown: str) -> None:
         text = pattern.sub(lambda _: body, text)
     else:
         text = text.rstrip() + "\n\n" + body + "\n"
-    DOC.parent.mkdir(parents=True, exist_ok=True)
-    DOC.write_text(text)
+    doc.parent.mkdir(parents=True, exist_ok=True)
+    doc.write_text(text)
 
 
 def report(name: str, markdown: str) -> int:

@@ -34,9 +34,18 @@ from calibrators import (
     tp_residuals,
 )
 from calibrators.data import Dump
-from calibrators.regions import DEFAULT_DISTANCE_EDGES, distance_bins, xy_mahalanobis
+from calibrators.regions import DEFAULT_DISTANCE_EDGES, xy_mahalanobis
 
 LEVELS = (0.5, 0.9, 0.95, 0.99)
+CELLS_DOC = Path(__file__).resolve().parent.parent / "docs" / "report" / "cells.md"
+CELLS_HEADER = (
+    "# Per-cell coverage on held-out scenes\n\n"
+    "Written by `bench/bench_cells.py --label` (one section per sensor; the command is in its "
+    "docstring). Each default profile is fit on 1000 val scenes and served on scenes of the "
+    "`holdout` split, which no fit or choice used. A cell is **short** when its coverage at "
+    "90 / 95 / 99 % is below `q − 0.02 − 2.33·sqrt(q(1−q)/n)` "
+    "(`calibrators.metrics.coverage_allowance`); `small` cells hold fewer test true positives "
+    "than the bench's `--min-cell` and are not judged.\n")
 CELL_LEVELS = (0.9, 0.95, 0.99)
 
 
@@ -66,27 +75,53 @@ def serve(val: Dump, test: Dump, options: FitOptions) -> Served:
                   test.det_labels)
 
 
-def allowance(q: float, n: int) -> float:
-    return q - 0.02 - 2.33 * np.sqrt(q * (1 - q) / n)
+def cell_table(s: Served, classes: tuple[str, ...]) -> metrics.CoverageTable:
+    """Coverage of the served regions per class × distance cell (`metrics.coverage_table`)."""
+    return metrics.coverage_table(s.maha, s.radii, LEVELS, np.asarray(classes)[s.labels],
+                                  s.distance, DEFAULT_DISTANCE_EDGES)
 
 
 def shortfalls(s: Served, classes: tuple[str, ...], min_cell: int, min_class: int
                ) -> list[str]:
-    """Every cell and class below its allowance, as `class bin @ level: coverage (n)`."""
-    edges = np.asarray(DEFAULT_DISTANCE_EDGES)
-    bins = distance_bins(s.distance, edges)
-    names = [f"{edges[b]:g}-{edges[b + 1]:g} m" for b in range(edges.size - 1)]
+    """Every cell and class below its allowance (`metrics.coverage_allowance`), as
+    `class bin @ level: coverage (n)`."""
     out = []
-    for c, name in enumerate(classes):
-        groups = [((s.labels == c) & (bins == b), names[b], CELL_LEVELS, min_cell)
-                  for b in range(edges.size - 1)] + [(s.labels == c, "all", LEVELS, min_class)]
-        for sel, where, levels, least in groups:
-            n = int(sel.sum())
-            for q in levels if n >= least else ():
-                cov = float(np.mean(s.maha[sel] <= s.radii[sel, LEVELS.index(q)]))
-                if cov < allowance(q, n):
-                    out.append(f"{name} {where} @ {q}: {cov:.3f} ({n})")
+    by_class = metrics.coverage_table(s.maha, s.radii, LEVELS, np.asarray(classes)[s.labels],
+                                      s.distance, (0.0, float("inf")))
+    cells = {r["class"]: [] for r in by_class.rows}
+    for r in cell_table(s, classes).rows:
+        cells[r["class"]].append((_span(r["distance_range"]), r, CELL_LEVELS, min_cell))
+    for r in by_class.rows:
+        for where, row, levels, least in [*cells[r["class"]], ("all", r, LEVELS, min_class)]:
+            for q in levels if row["count"] >= least else ():
+                cov = row["coverage"][LEVELS.index(q)]
+                if cov < metrics.coverage_allowance(q, row["count"]):
+                    out.append(f"{row['class']} {where} @ {q}: {cov:.3f} ({row['count']})")
     return out
+
+
+def cell_markdown(s: Served, classes: tuple[str, ...], min_cell: int) -> str:
+    """Every class × distance cell of `s`: test TPs and the coverage at each level with its
+    95 % Clopper-Pearson interval; **short** where below its allowance, `small` where the cell
+    has fewer than `min_cell` TPs (too few to judge)."""
+    head = ("| class | range | test TPs | " + " | ".join(f"{q:.0%}" for q in LEVELS)
+            + " |\n|" + "---|" * (len(LEVELS) + 3))
+    lines = [head]
+    for r in cell_table(s, classes).rows:
+        n, cells = r["count"], []
+        for q, cov in zip(LEVELS, r["coverage"], strict=True):
+            lo, hi = metrics.proportion_bounds(round(cov * n), n)
+            mark = ("small" if n < min_cell else "**short**"
+                    if q in CELL_LEVELS and cov < metrics.coverage_allowance(q, n) else "")
+            cells.append(f"{cov:.3f} [{float(lo):.3f}, {float(hi):.3f}] {mark}".rstrip())
+        lines.append(f"| {r['class']} | {_span(r['distance_range'])} | {n} | "
+                     + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _span(edges: list) -> str:
+    lo, hi = edges
+    return f"{lo:g}+ m" if hi is None or not np.isfinite(hi) else f"{lo:g}-{hi:g} m"
 
 
 def summary(s: Served, classes: tuple[str, ...], min_class: int) -> dict[str, float]:
@@ -110,12 +145,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--label", help="write the figures to docs/benchmarks.md under this name")
     args = ap.parse_args(argv)
     val, test = load_dump(args.val), load_dump(args.test)
-    rows = []
+    rows, served = [], None
     for name, options in (("reference: without cell floors", FitOptions(cell_floors=False)),
                           ("cell floors by test only (floor_delta none)",
                            FitOptions(floor_delta=None)),
                           ("default options (cell and tail floors)", FitOptions())):
-        served = serve(val, test, options)
+        served = serve(val, test, options)   # the last: the default options
         missed = shortfalls(served, test.classes, args.min_cell, args.min_class)
         figures = summary(served, test.classes, args.min_class)
         print(f"## {name}: {len(missed)} cells or classes below their allowance")
@@ -132,6 +167,14 @@ def main(argv: list[str] | None = None) -> int:
                       f"Fit on `{Path(args.val).name}`, served on `{Path(args.test).name}` "
                       f"({test.n_frames} frames); cells with >= {args.min_cell} test TPs, "
                       f"classes with >= {args.min_class}.\n\n{head}\n" + "\n".join(rows))
+    table = cell_markdown(served, test.classes, args.min_cell)
+    print(table)
+    if args.label:
+        write_section(f"cells {args.label}", f"## {args.label}\n\nThe default profile fit on "
+                      f"`{Path(args.val).name}`, served on `{Path(args.test).name}` "
+                      f"({test.n_frames} frames): coverage of the served ellipses per class × "
+                      f"distance cell, with its 95 % Clopper-Pearson interval.\n\n{table}",
+                      doc=CELLS_DOC, header=CELLS_HEADER)
     return 0
 
 

@@ -3,10 +3,9 @@ small to judge."""
 
 from __future__ import annotations
 
-from scipy import stats
+from calibrators.metrics import INTERVAL_CONFIDENCE as CONFIDENCE
+from calibrators.metrics import proportion_bounds
 
-#: Confidence of the intervals the tables print.
-CONFIDENCE = 0.95
 #: A cell with fewer true positives than this is shown grey: its figures are too noisy to
 #: judge (at 30 TPs a 95 % interval of a proportion near 0.9 is already about ±0.12 wide).
 MIN_TPS = 30
@@ -15,11 +14,8 @@ MIN_TPS = 30
 def proportion_interval(value: float, n: int, confidence: float = CONFIDENCE
                         ) -> tuple[float, float]:
     """Clopper-Pearson (exact binomial) interval of a proportion `value` seen in `n` trials."""
-    hits = round(value * n)
-    a = (1.0 - confidence) / 2.0
-    lo = float(stats.beta.ppf(a, hits, n - hits + 1)) if hits > 0 else 0.0
-    hi = float(stats.beta.ppf(1 - a, hits + 1, n - hits)) if hits < n else 1.0
-    return lo, hi
+    lo, hi = proportion_bounds(round(value * n), n, confidence)
+    return float(lo), float(hi)
 
 
 def too_small(tps: int | None) -> bool:

@@ -16,6 +16,11 @@ from calibrators.metrics.curves import (
     miscalibration_area,
 )
 from calibrators.metrics.detection import detection_ece
+from calibrators.metrics.intervals import (
+    INTERVAL_CONFIDENCE,
+    coverage_allowance,
+    proportion_bounds,
+)
 from calibrators.metrics.regions import (
     CoverageTable,
     EllipseCoverage,
@@ -36,6 +41,7 @@ from calibrators.metrics.regression import (
 from calibrators.metrics.scoring import brier_score, classification_nll
 
 __all__ = [
+    "INTERVAL_CONFIDENCE",
     "CalibrationCurve",
     "Coverage",
     "CoverageTable",
@@ -47,6 +53,7 @@ __all__ = [
     "classification_nll",
     "classwise_ece",
     "coverage",
+    "coverage_allowance",
     "coverage_table",
     "detection_ece",
     "ellipse_coverage",
@@ -56,6 +63,7 @@ __all__ = [
     "max_calibration_error",
     "mean_ellipse_area",
     "miscalibration_area",
+    "proportion_bounds",
     "regression_nll",
     "reliability_diagram",
     "residual_uncertainty",

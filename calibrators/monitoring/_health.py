@@ -27,7 +27,6 @@ from dataclasses import dataclass, fields, replace
 from typing import Any
 
 import numpy as np
-from scipy import stats
 
 from calibrators.core.bins import bin_index
 from calibrators.core.defaults import MATCH_THRESHOLD
@@ -35,6 +34,7 @@ from calibrators.core.errors import FieldError
 from calibrators.covariance import source_arrays
 from calibrators.data import Dump
 from calibrators.evaluation import SUMMARY_LEVELS, match_dump, tp_residuals
+from calibrators.metrics import INTERVAL_CONFIDENCE, proportion_bounds
 from calibrators.profile import CalibratedDetections, CalibrationProfile
 from calibrators.regions import DEFAULT_DISTANCE_EDGES, check_levels, distance_bins, xy_mahalanobis
 
@@ -46,7 +46,7 @@ HEALTH_LEVELS: tuple[float, ...] = SUMMARY_LEVELS
 #: Equal-width confidence bins of the ECE.
 N_SCORE_BINS = 10
 #: Two-sided confidence of the bounds in `health_figures`.
-BOUND_CONFIDENCE = 0.95
+BOUND_CONFIDENCE = INTERVAL_CONFIDENCE
 
 
 @dataclass(frozen=True)
@@ -306,23 +306,12 @@ def _served(dump: Dump, profile: CalibrationProfile, source: str, levels: np.nda
     return replace(calibrate(None), region_radii=radii)
 
 
-def _proportion_bounds(hits: np.ndarray, n: np.ndarray, confidence: float = BOUND_CONFIDENCE
-                       ) -> tuple[np.ndarray, np.ndarray]:
-    """Clopper-Pearson (exact binomial) bounds of `hits / n`, elementwise (NaN where n = 0)."""
-    a = (1.0 - confidence) / 2.0
-    with np.errstate(invalid="ignore", divide="ignore"):
-        lo = np.where(hits > 0, stats.beta.ppf(a, hits, n - hits + 1), 0.0)
-        hi = np.where(hits < n, stats.beta.ppf(1 - a, hits + 1, n - hits), 1.0)
-    empty = n <= 0
-    return np.where(empty, np.nan, lo), np.where(empty, np.nan, hi)
-
-
 def _ece(count: np.ndarray, conf: np.ndarray, hit: np.ndarray) -> dict[str, float | None]:
     """ECE over bins `[B]` from their sums, with bounds from each bin's accuracy interval."""
     n = count.sum()
     if n <= 0:
         return {"value": None, "lower": None, "upper": None}
-    lo, hi = _proportion_bounds(hit, count)
+    lo, hi = proportion_bounds(hit, count)
     safe = np.maximum(count, 1)
     mean_conf = conf / safe
     gap = np.abs(hit - conf) / safe
@@ -348,7 +337,7 @@ def health_figures(counts: HealthCounts, classes: Sequence[str], levels: Sequenc
     c = counts
     overall_n = c.region_count.sum()
     overall_hits = c.region_hits.sum(axis=(0, 1))
-    lo, hi = _proportion_bounds(overall_hits, np.full(q.size, overall_n))
+    lo, hi = proportion_bounds(overall_hits, np.full(q.size, overall_n))
     overall = [{"level": float(level), "n": int(overall_n),
                 "coverage": None if overall_n == 0 else float(overall_hits[j] / overall_n),
                 "lower": _nan_none(lo[j:j + 1])[0], "upper": _nan_none(hi[j:j + 1])[0]}
@@ -360,7 +349,7 @@ def health_figures(counts: HealthCounts, classes: Sequence[str], levels: Sequenc
             if n <= 0:
                 continue
             hits = c.region_hits[ci, b]
-            clo, chi = _proportion_bounds(hits, np.full(q.size, n))
+            clo, chi = proportion_bounds(hits, np.full(q.size, n))
             cells.append({"class": name, "distance_range": _nan_none(edges[b:b + 2]),
                           "n": int(n), "coverage": (hits / n).tolist(),
                           "lower": _nan_none(clo), "upper": _nan_none(chi)})

@@ -184,7 +184,13 @@ def _honest_overview(reports: Sequence[SensorReport]) -> str:
                  f"{tables.number(None if shrink is None else shrink.mean_md)}",
                  f"{_find(r.rows, 'Vanilla').mean_ap:.3f} → {h.default_row.mean_ap:.3f}"]
         lines.append("| " + " | ".join(cells) + " |")
-    return "\n".join(lines)
+    return "\n".join(lines) + "\n\n" + CELLS_LINK
+
+
+#: Where the per-cell figures on held-out scenes are (written by `bench/bench_cells.py`).
+CELLS_LINK = ("Per class × distance cell, with sampling intervals, on 3,000 scenes of the "
+              "`holdout` split that no fit or choice used: [cells.md](cells.md), written by "
+              "`bench/bench_cells.py --label` (the commands are in its docstring).")
 
 
 def _levels(values: Sequence[float]) -> str:
