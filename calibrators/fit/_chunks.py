@@ -6,7 +6,10 @@ Every function first `prepare`s the part exactly as `fit_profile` treats those f
 the `min_score` filter, the hold-out frames dropped, nuScenes matching of what remains
 (matching never crosses frames, so a part matches as it would within the whole dump), the
 temperature-scaling logits and labels (`ts_logits`, `ts_labels`) and the true positives'
-depth-scaling terms per covariance source.
+depth-scaling terms per covariance source. With a calibration part (conformal regions), the
+depth terms are those of the training part's true positives, and the calibration part's true
+positives are kept (`CalibrationTPs`: residuals, raw Σ per source, distances, classes; a few
+numbers each) for the region stage, as `fit_profile` splits the fit frames.
 """
 
 from __future__ import annotations
@@ -26,8 +29,9 @@ from calibrators.scores import SigmoidBins, SoftmaxSums, row_max
 class Chunk:
     """One part of `dataset` and the fit's settings: `held [frames of the part]` the hold-out
     frames, the part's `frame_ids` / `ego` rows, matching `threshold`, `min_score`,
-    `modulation`, regression `dims`, and `offset`, the index of the part's first fit
-    detection among all fit detections (set after the first pass)."""
+    `modulation`, regression `dims`, `offset`, the index of the part's first fit detection
+    among all fit detections (set after the first pass), and `calib [frames of the part]`,
+    the frames of the calibration part (None: no calibration part)."""
 
     dataset: ParquetDataset
     index: int
@@ -39,6 +43,7 @@ class Chunk:
     modulation: bool
     dims: tuple[str, ...]
     offset: int = 0
+    calib: np.ndarray | None = None
 
 
 @dataclass(frozen=True)
@@ -60,6 +65,29 @@ class FirstPass:
     sigmoid: SigmoidBins | tuple[np.ndarray, np.ndarray] | None
     softmax_labels: np.ndarray | None
     bins: dict[str, BinSums]
+    calib: CalibrationTPs | None = None
+
+
+@dataclass(frozen=True)
+class CalibrationTPs:
+    """The true positives of a part's calibration frames: residuals `[M, D]`, raw Σ
+    `[M, D, D]` per covariance source (None for `none`), distances `[M]` (m), class indices
+    `[M]`; `concat` joins the parts' (the region stage fits on all of them)."""
+
+    residuals: np.ndarray
+    covariances: dict[str, np.ndarray | None]
+    distances: np.ndarray
+    labels: np.ndarray
+
+    @staticmethod
+    def concat(parts: list[CalibrationTPs]) -> CalibrationTPs:
+        return CalibrationTPs(
+            np.concatenate([p.residuals for p in parts]),
+            {s: None if parts[0].covariances[s] is None
+             else np.concatenate([p.covariances[s] for p in parts])
+             for s in parts[0].covariances},
+            np.concatenate([p.distances for p in parts]),
+            np.concatenate([p.labels for p in parts]))
 
 
 def _work(chunk: Chunk, logits_only: bool = False) -> Dump:
@@ -102,20 +130,24 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
     if fit.score_mode == "sigmoid":
         s = row_max(ts_logits(fit, chunk.modulation))
         sigmoid = (s, labels) if span is None else SigmoidBins.from_logits(s, labels, span=span)
-    bins = {}
+    bins, raw = {}, {}
+    in_calib = (np.zeros(int(tp.sum()), dtype=bool) if chunk.calib is None   # [TPs]
+                else chunk.calib[~chunk.held][fit.det_frame][tp])
+    train = ~in_calib   # of the true positives: their depth terms fit k
     res, codes = tp_residuals(fit, matched, chunk.dims), fit.det_labels[tp]
     for source in sources:
         cov = raw_covariances(fit, source, chunk.dims)
-        if not len(res):
+        raw[source] = None if cov is None else cov[tp][in_calib]
+        if not train.any():
             bins[source] = BinSums.build_empty(len(chunk.dims), len(fit.classes))
             continue
         try:
-            terms = fit_inputs(res, None if cov is None else cov[tp], fit.det_distance[tp],
-                               codes)[5]
+            terms = fit_inputs(res[train], None if cov is None else cov[tp][train],
+                               fit.det_distance[tp][train], codes[train])[5]
         except ValueError as exc:
             raise ValueError(f"depth covariance scaling failed with cov_source={source!r}: "
                              f"part {chunk.dataset.parts[chunk.index].name}: {exc}") from exc
-        bins[source] = BinSums.build(terms, codes, len(fit.classes))
+        bins[source] = BinSums.build(terms, codes[train], len(fit.classes))
     per_frame = np.bincount(work.det_frame, minlength=work.n_frames)
     return FirstPass(
         n_detections=chunk.dataset.parts[chunk.index].n_detections,
@@ -124,7 +156,8 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
         held_per_frame=np.where(chunk.held, per_frame, 0), sigmoid=sigmoid,
         softmax_labels=labels.astype(np.min_scalar_type(len(fit.classes)))
         if fit.score_mode == "softmax" else None,
-        bins=bins)
+        bins=bins, calib=None if chunk.calib is None else CalibrationTPs(
+            res[in_calib], raw, fit.det_distance[tp][in_calib], codes[in_calib]))
 
 
 def _softmax_logits(chunk: Chunk) -> np.ndarray:

@@ -25,8 +25,8 @@ from calibrators.data import Dump
 from calibrators.evaluation import SUMMARY_LEVELS, MatchResult, tp_residuals
 from calibrators.regions import ConformalRegions, xy_mahalanobis
 
-__all__ = ["CovarianceFit", "RegionFit", "covariance_fit", "fit_covariance_stage",
-           "fit_region_stage"]
+__all__ = ["CovarianceFit", "RegionFit", "conformal_region_fit", "covariance_fit",
+           "fit_covariance_stage", "fit_region_stage"]
 
 #: Shrinkage factors searched (a layer spread of mm² may need s in the thousands).
 SCALE_BOUNDS = (1e-3, 1e4)
@@ -169,9 +169,21 @@ def fit_region_stage(calib: tuple[Dump, MatchResult] | None, covariances: np.nda
     dump, matched = calib
     tp = np.asarray(matched.tp, dtype=bool)
     scores = xy_mahalanobis(tp_residuals(dump, matched, dims), covariances[tp], dims)
+    return conformal_region_fit(scores, dump.det_labels[tp], dump.det_distance[tp],
+                                len(dump.classes), min_group, distance_edges,
+                                cell_floor=cell_floor, delta=delta, floor_delta=floor_delta)
+
+
+def conformal_region_fit(scores: np.ndarray, labels: np.ndarray, distances: np.ndarray,
+                         n_classes: int, min_group: int, distance_edges: tuple[float, ...], *,
+                         cell_floor: bool = False, delta: float | None = None,
+                         floor_delta: float | None = None) -> RegionFit:
+    """The conformal `RegionFit` of the calibration true positives' Mahalanobis `scores [M]`,
+    class indices `labels [M]` and `distances [M]` (m), over classes 0..n_classes-1 (the
+    in-memory and the streamed fit share it)."""
     regions = ConformalRegions(distance_edges=(0.0, *distance_edges, float("inf")),
                                min_group=min_group, cell_floor=cell_floor, delta=delta,
                                floor_delta=floor_delta if cell_floor else None)
-    regions.fit(scores, dump.det_labels[tp], dump.det_distance[tp],
-                all_classes=list(range(len(dump.classes))))
-    return RegionFit("conformal", regions.to_dict(), n_tp, regions.guarantees(SUMMARY_LEVELS))
+    regions.fit(scores, labels, distances, all_classes=list(range(n_classes)))
+    return RegionFit("conformal", regions.to_dict(), int(scores.shape[0]),
+                     regions.guarantees(SUMMARY_LEVELS))

@@ -18,13 +18,19 @@ options)` gives, T and every k to 1e-6 relative, holding one part of the dataset
    first pass returned every fit row's target column, 2 bytes a row, so these passes
    neither match nor read boxes), started where the same seeded subsample (gathered from
    the parts) puts T;
-5. the profile is assembled as `fit_profile` assembles it; its report summarises a seeded
+5. conformal regions (`region_method` conformal, or auto): the fit frames are split into a
+   training and a calibration part as `fit_profile` splits them (`held_out_frames` of the
+   fit frames' tokens with `calibration` and seed + 1, so the same frames whatever the
+   partitioning); k is fit on the training part's depth statistics, and the calibration
+   part's true positives (kept by the first pass: a residual, a raw Σ and two numbers each)
+   give the Mahalanobis scores the conformal radii are fit on, exactly as in memory;
+6. the profile is assembled as `fit_profile` assembles it; its report summarises a seeded
    sample of at most `report_detections` detections of whole fit (and held-out) frames,
    all of them when they fit (the report then equals the in-memory one), and says so.
 
 What needs all the data at once is refused with an `OptionError` naming the option
 (`check_stream_options`): choosing among `auto` candidates on a calibration part, per-class
-score calibrators, shrinkage, conformal regions.
+score calibrators, shrinkage.
 """
 
 from __future__ import annotations
@@ -39,10 +45,11 @@ import numpy as np
 
 from calibrators.core.errors import OptionError
 from calibrators.core.vocab import COV_SOURCES
-from calibrators.covariance import DepthScaler, resolve_cov_source
+from calibrators.covariance import DepthScaler, add_depth_term, resolve_cov_source
 from calibrators.data import canonical_order, concat_frames, held_out_frames
 from calibrators.evaluation import ProfileReport, summarize
 from calibrators.fit._chunks import (
+    CalibrationTPs,
     Chunk,
     FirstPass,
     first_pass,
@@ -64,12 +71,13 @@ from calibrators.fit._pipeline import (
 from calibrators.fit._region_stage import (
     CovarianceFit,
     RegionFit,
+    conformal_region_fit,
     covariance_fit,
-    fit_region_stage,
 )
 from calibrators.fit._score_stage import ScoreFit
 from calibrators.io.parquet import ParquetDataset, open_parquet
 from calibrators.profile import CalibrationProfile, make_provenance
+from calibrators.regions import xy_mahalanobis
 from calibrators.scores import (
     SIGMOID_BINS,
     SUBSAMPLE_MIN,
@@ -89,12 +97,11 @@ Progress = Callable[[str, float], None]
 
 def check_stream_options(options: FitOptions, n_fit_frames: int | None = None) -> None:
     """Raise `OptionError` naming the option when a streamed fit cannot give what
-    `fit_profile` gives with `options`: anything but temperature, depth and gaussian regions
-    (`auto` means those when there is no calibration part: `calibration=0`, or fewer than 2
-    fit frames, `n_fit_frames`)."""
+    `fit_profile` gives with `options`: anything but temperature, depth and gaussian or
+    conformal regions (`auto` means temperature and depth when there is no calibration part:
+    `calibration=0`, or fewer than 2 fit frames, `n_fit_frames`)."""
     no_calibration = options.calibration <= 0 or (n_fit_frames is not None and n_fit_frames < 2)
-    for name, thesis in (("score_method", "temperature"), ("cov_method", "depth"),
-                         ("region_method", "gaussian")):
+    for name, thesis in (("score_method", "temperature"), ("cov_method", "depth")):
         value = getattr(options, name)
         if value == thesis or (value == "auto" and no_calibration):
             continue
@@ -124,28 +131,32 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     source = check_fit_input(empty, opts)
     held = held_out_frames(ds.frames()[0], opts.holdout, opts.seed)
     check_stream_options(opts, ds.n_frames - int(held.sum()))
+    calib = _calibration_frames(ds.frames()[0], held, opts)
     sources = (source, *_other_sources(empty, source, opts))
     mapper = Mapper(client)
 
     report_progress("match", 0.1)
-    chunks, firsts, n_fit, n_tp = _first_passes(ds, held, opts, sources, mapper)
+    chunks, firsts, n_fit, n_tp = _first_passes(ds, held, calib, opts, sources, mapper)
 
     report_progress("scores", 0.25)
     temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper)
     report_progress("covariance", 0.4)
     covs = {s: _depth(ds, s, firsts, opts) for s in sources}
     scores = ScoreFit(method="temperature", temperature=temperature, params=None)
+    report_progress("regions", 0.5)
+    regions = _regions(ds.classes, opts, covs, firsts, calib)
     provenance = make_provenance(
         dump_sha256=ds.source_sha256, n_frames=ds.n_frames, n_detections=ds.n_detections,
         n_ground_truth=ds.n_ground_truth, n_fit_frames=ds.n_frames - int(held.sum()),
         n_fit_detections=n_fit, n_holdout_frames=int(held.sum()), n_matched=n_tp,
-        holdout=opts.holdout, seed=int(opts.seed), n_calibration_frames=0,
+        holdout=opts.holdout, seed=int(opts.seed),
+        n_calibration_frames=0 if calib is None else int(calib.sum()),
         options=opts.to_dict())
-    profile, region = _assembled(empty, opts, scores, covs, sources, provenance)
+    profile = _assembled(empty, opts, scores, covs, sources, regions, provenance)
 
     report_progress("report", 0.6)
     report = _report(profile, opts, chunks, firsts, held, report_detections, mapper,
-                     selection_of(scores, covs[source], region))
+                     selection_of(scores, covs[source], regions[source], tuple(ds.classes)))
     report_progress("done", 1.0)
     return replace(profile, report=report)
 
@@ -162,13 +173,13 @@ def _sigmoid_span(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper
     return None
 
 
-def _first_passes(ds: ParquetDataset, held: np.ndarray, opts: FitOptions,
-                  sources: tuple[str, ...], mapper: Mapper
+def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None,
+                  opts: FitOptions, sources: tuple[str, ...], mapper: Mapper
                   ) -> tuple[list[Chunk], list[FirstPass], int, int]:
     """The parts (each with the offset of its first fit row), their first passes (module
     docstring, step 3), the fit rows and the true positives; the ValueErrors of
     `fit_profile` when nothing is left to fit on or nothing matched."""
-    chunks = _chunks(ds, held, opts)
+    chunks = _chunks(ds, held, calib, opts)
     span = _sigmoid_span(ds, chunks, mapper)
     firsts: list[FirstPass] = mapper.map(first_pass, chunks, sources=sources, span=span)
     counts = np.array([f.n_fit_detections for f in firsts])
@@ -184,19 +195,16 @@ def _first_passes(ds: ParquetDataset, held: np.ndarray, opts: FitOptions,
 
 
 def _assembled(empty: Any, opts: FitOptions, scores: ScoreFit, covs: dict[str, CovarianceFit],
-               sources: tuple[str, ...], provenance: dict
-               ) -> tuple[CalibrationProfile, RegionFit | None]:
-    """The profile as `fit_profile` assembles it (Gaussian regions, no report yet), and its
-    region fit."""
+               sources: tuple[str, ...], regions: dict[str, RegionFit | None],
+               provenance: dict) -> CalibrationProfile:
+    """The profile as `fit_profile` assembles it (no report yet)."""
     source = sources[0]
     profile = base_profile(empty, opts, scores, covs[source], source, provenance)
-    region = fit_region_stage(None, None, opts.dims, "gaussian", opts.min_group,
-                              opts.distance_edges)
-    profile = replace(profile, regions=source_stage(covs[source], region)["regions"])
+    profile = replace(profile, regions=source_stage(covs[source], regions[source])["regions"])
     if opts.other_sources:
-        profile = replace(profile, sources={s: source_stage(covs[s], region)
+        profile = replace(profile, sources={s: source_stage(covs[s], regions[s])
                                             for s in sources[1:]} or None)
-    return versioned(profile), region
+    return versioned(profile)
 
 
 def _other_sources(empty: Any, source: str, opts: FitOptions) -> tuple[str, ...]:
@@ -215,13 +223,62 @@ def _other_sources(empty: Any, source: str, opts: FitOptions) -> tuple[str, ...]
     return tuple(out)
 
 
-def _chunks(ds: ParquetDataset, held: np.ndarray, opts: FitOptions) -> list[Chunk]:
+def _chunks(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None, opts: FitOptions
+            ) -> list[Chunk]:
     ids, ego = ds.frames()
     return [Chunk(dataset=ds, index=i, held=held[p.first:p.stop],
                   frame_ids=ids[p.first:p.stop], ego=None if ego is None else ego[p.first:p.stop],
                   threshold=opts.threshold, min_score=opts.min_score,
-                  modulation=opts.modulation, dims=opts.dims)
+                  modulation=opts.modulation, dims=opts.dims,
+                  calib=None if calib is None else calib[p.first:p.stop])
             for i, p in enumerate(ds.parts)]
+
+
+def _calibration_frames(frame_ids: np.ndarray, held: np.ndarray, opts: FitOptions
+                        ) -> np.ndarray | None:
+    """`[F]` the frames of the calibration part, drawn among the fit frames as `fit_profile`
+    draws them (its `_calibration_split`), or None when the fit has none (gaussian regions,
+    `calibration=0`, fewer than 2 fit frames)."""
+    fit = np.flatnonzero(~held)
+    if opts.region_method == "gaussian" or opts.calibration <= 0 or fit.size < 2:
+        if opts.region_method == "conformal":
+            raise OptionError("calibration", "region_method='conformal' needs a calibration "
+                                             "part: calibration > 0 and at least 2 frames")
+        return None
+    out = np.zeros(len(frame_ids), dtype=bool)
+    out[fit] = held_out_frames(frame_ids[fit], opts.calibration, opts.seed + 1)
+    return out
+
+
+def _regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, CovarianceFit],
+             firsts: list[FirstPass], calib: np.ndarray | None) -> dict[str, RegionFit | None]:
+    """The region stage of every covariance source, as `fit_region_stage` fits it in memory:
+    conformal on the calibration part's true positives under the fitted Σ' (gaussian
+    without a calibration part, or with `auto` and fewer than `min_group` of them)."""
+    tps = None if calib is None else CalibrationTPs.concat([f.calib for f in firsts])
+    n = 0 if tps is None else len(tps.labels)
+    out = {}
+    for source, cov in covs.items():
+        method = "gaussian" if tps is None else opts.region_method
+        if "x" not in opts.dims or "y" not in opts.dims:
+            out[source] = None   # no ellipse to serve
+            continue
+        if method == "gaussian" or (method == "auto" and n < opts.min_group):
+            out[source] = RegionFit("gaussian", None, n)
+            continue
+        if tps is None or n == 0:
+            raise ValueError("region_method='conformal' needs a calibration part with true "
+                             "positives (calibration > 0)")
+        k = np.array([cov.depth_k[c] for c in classes])[tps.labels]
+        raw = tps.covariances[source]
+        base = np.zeros((n, len(opts.dims), len(opts.dims))) if raw is None else raw
+        scores = xy_mahalanobis(tps.residuals, add_depth_term(base, tps.distances, k),
+                                opts.dims)
+        out[source] = conformal_region_fit(
+            scores, tps.labels, tps.distances, len(classes), opts.min_group,
+            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
+            floor_delta=opts.floor_delta)
+    return out
 
 
 def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],

@@ -47,3 +47,21 @@ def test_bad_dask_specs_are_refused_naming_dask(spec):
 
 def test_mapper_without_a_client_runs_here_in_order():
     assert Mapper().map(divmod, [7, 9], [2, 4]) == [(3, 1), (2, 1)]
+
+
+def test_dask_conformal_regions_equal_the_in_memory_ones(tmp_path):
+    """The calibration part's true positives gathered from two worker processes give the
+    radii the in-memory fit gives."""
+    from tests.calibrators.fit.test_fit_stream import assert_close_tree
+
+    dump = synthetic_dump(n_frames=60, n_gt_per_frame=12, seed=22)
+    save_parquet(tmp_path / "ds", dump, rows_per_part=150)
+    options = {"score_method": "temperature", "cov_method": "depth",
+               "region_method": "conformal", "min_group": 15}
+    in_memory = fit_profile(load_parquet(tmp_path / "ds"), **options)
+    with dask_client("local:2") as client:
+        streamed = fit_profile_stream(tmp_path / "ds", client=client, **options)
+    assert streamed.region_method == "conformal"
+    assert_close_tree(streamed.regions, in_memory.regions, "regions")
+    for source, stage in in_memory.sources.items():
+        assert_close_tree(streamed.sources[source]["regions"], stage["regions"], source)
