@@ -19,7 +19,7 @@ from calibrators.covariance._depth_grid import MANTISSA_BITS, OCTAVES, log_bin, 
 from calibrators.covariance._depth_nll import BinSums, DepthTerms, depth_bins
 from calibrators.covariance._depth_search import brent_k
 from calibrators.covariance._hypotheses import check_hypotheses, hypotheses_covariance
-from calibrators.covariance._shrinkage import ShrinkageDepthScaler
+from calibrators.covariance._shrinkage import ShrinkageDepthScaler, near_zero_q
 from calibrators.covariance._sources import (
     SOURCE_ARRAYS,
     dim_indices,
@@ -35,5 +35,5 @@ from calibrators.covariance._spectral import spectral, spectral_2x2
 __all__ = ["MANTISSA_BITS", "OCTAVES", "SOURCE_ARRAYS", "BinSums", "DepthScaler", "DepthTerms",
            "ShrinkageDepthScaler", "add_depth_term", "brent_k", "check_hypotheses", "depth_bins",
            "dim_indices", "fit_inputs", "hypotheses_covariance", "layer_spread", "log_bin",
-           "log_bin_low", "raw_covariances", "resolve_cov_source", "source_arrays",
+           "log_bin_low", "near_zero_q", "raw_covariances", "resolve_cov_source", "source_arrays",
            "source_covariance", "source_inputs", "spectral", "spectral_2x2"]

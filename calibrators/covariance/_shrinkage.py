@@ -76,9 +76,41 @@ class ShrinkageDepthScaler:
         r, cov, d, keys, codes, terms = fit_inputs(residuals, covariances, distances, classes)
         n, dim = r.shape
         groups, pooled = depth_bins(terms, codes, len(keys))
-        near_q = _near_q(terms, codes, len(keys))
+        near_q = near_zero_q(terms, codes, len(keys))
         fit = _PairFit(bounds, (1.0, 1.0) if cov is None else scale_bounds, float(self.xtol))
+        s_of, k_of = self._fit_groups(fit, groups, pooled, near_q, keys, min_samples)
+        exact = _scaled_terms(terms, s_of[codes]).group_nll(k_of, codes)
+        self.nll_ = {key: (None if key in self.fallback_classes_ else float(exact[g]))
+                     for g, key in enumerate(keys)}
+        self.pooled_nll_ = _scaled_terms(terms, np.full(n, self.pooled_s_)).nll(self.pooled_k_)
+        self.n_dims_ = dim
+        return self
 
+    def fit_binned(self, groups: list[DepthBins], pooled: DepthBins, near_q: np.ndarray,
+                   keys: list, n_dims: int, has_sigma: bool = True) -> ShrinkageDepthScaler:
+        """Fit from binned statistics (`BinSums.finish()`) of the groups named `keys` and of
+        all of them pooled, with each group's `near_q` (`near_zero_q`), as `fit` does after
+        binning: the same `s_`, `k_`, fallbacks and counts (a streamed fit merges the
+        statistics of chunks of the data). `has_sigma=False`: Σ = 0, s is 1. `nll_` and
+        `pooled_nll_` are None (they need the data once more). Returns self."""
+        min_samples = check_min_samples(self.min_samples)
+        bounds = check_bounds(self.bounds, zero_low=True)
+        scale_bounds = _check_scale_bounds(self.scale_bounds)
+        if pooled.n == 0:
+            raise FieldError("residuals", "residuals is empty: no sample to fit k on")
+        fit = _PairFit(bounds, scale_bounds if has_sigma else (1.0, 1.0), float(self.xtol))
+        self._fit_groups(fit, groups, pooled, np.asarray(near_q, dtype=np.float64), keys,
+                         min_samples)
+        self.nll_ = {key: None for key in keys}
+        self.pooled_nll_ = None
+        self.n_dims_ = int(n_dims)
+        return self
+
+    def _fit_groups(self, fit: _PairFit, groups: list[DepthBins], pooled: DepthBins,
+                    near_q: np.ndarray, keys: list, min_samples: int
+                    ) -> tuple[np.ndarray, np.ndarray]:
+        """Set `s_`, `k_`, the pooled pair, `n_samples_`, `fallback_classes_`; returns
+        `(s, k)` per group."""
         pooled_s, pooled_k = fit(pooled, float(near_q.sum()), "pooled")
         s_of, k_of = np.full(len(keys), pooled_s), np.full(len(keys), pooled_k)
         self.n_samples_, self.fallback_classes_ = {}, []
@@ -90,13 +122,8 @@ class ShrinkageDepthScaler:
                 s_of[g], k_of[g] = fit(stats, float(near_q[g]), key)
         self.s_ = {key: float(s_of[g]) for g, key in enumerate(keys)}
         self.k_ = {key: float(k_of[g]) for g, key in enumerate(keys)}
-        exact = _scaled_terms(terms, s_of[codes]).group_nll(k_of, codes)
-        self.nll_ = {key: (None if key in self.fallback_classes_ else float(exact[g]))
-                     for g, key in enumerate(keys)}
         self.pooled_s_, self.pooled_k_ = pooled_s, pooled_k
-        self.pooled_nll_ = _scaled_terms(terms, np.full(n, pooled_s)).nll(pooled_k)
-        self.n_dims_ = dim
-        return self
+        return s_of, k_of
 
     def transform(self, covariances: np.ndarray | None, distances: np.ndarray,
                   classes: np.ndarray) -> np.ndarray:
@@ -167,7 +194,7 @@ def _at_scale(stats: DepthBins, near_q: float, s: float) -> DepthBins:
                                b_zero=stats.b_zero / s)
 
 
-def _near_q(terms: DepthTerms, codes: np.ndarray, n_groups: int) -> np.ndarray:
+def near_zero_q(terms: DepthTerms, codes: np.ndarray, n_groups: int) -> np.ndarray:
     """Per group `[G]`, the sum of `q/λ` over the samples at `d = 0` (regular Σ there)."""
     near = terms.dist == 0
     if not near.any():

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibrators.covariance import BinSums, fit_inputs, raw_covariances
+from calibrators.covariance import BinSums, fit_inputs, near_zero_q, raw_covariances
 from calibrators.data import Dump, select_detections
 from calibrators.evaluation import MatchResult, match_dump, tp_residuals, ts_labels, ts_logits
 from calibrators.io.parquet import ParquetDataset
@@ -53,8 +53,9 @@ class FirstPass:
     temperature-scaling statistics (sigmoid: `SigmoidBins` on the grid given, or the
     predicted logits and labels themselves for small fits; softmax: the target column of
     every fit row, in the smallest integer type, so that the passes of the softmax search
-    read logits alone), and the depth-scaling `BinSums` of the true positives per
-    covariance source (groups = class index)."""
+    read logits alone), the depth-scaling `BinSums` of the (training part's) true positives
+    per covariance source (groups = class index) with their `near_zero_q` sums `[C]` (the
+    shrinkage fit's), and the calibration part's true positives."""
 
     n_detections: int
     n_ground_truth: int
@@ -66,6 +67,7 @@ class FirstPass:
     softmax_labels: np.ndarray | None
     bins: dict[str, BinSums]
     calib: CalibrationTPs | None = None
+    near_q: dict[str, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -130,7 +132,7 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
     if fit.score_mode == "sigmoid":
         s = row_max(ts_logits(fit, chunk.modulation))
         sigmoid = (s, labels) if span is None else SigmoidBins.from_logits(s, labels, span=span)
-    bins, raw = {}, {}
+    bins, raw, near_q = {}, {}, {}
     in_calib = (np.zeros(int(tp.sum()), dtype=bool) if chunk.calib is None   # [TPs]
                 else chunk.calib[~chunk.held][fit.det_frame][tp])
     train = ~in_calib   # of the true positives: their depth terms fit k
@@ -140,6 +142,7 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
         raw[source] = None if cov is None else cov[tp][in_calib]
         if not train.any():
             bins[source] = BinSums.build_empty(len(chunk.dims), len(fit.classes))
+            near_q[source] = np.zeros(len(fit.classes))
             continue
         try:
             terms = fit_inputs(res[train], None if cov is None else cov[tp][train],
@@ -148,6 +151,7 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
             raise ValueError(f"depth covariance scaling failed with cov_source={source!r}: "
                              f"part {chunk.dataset.parts[chunk.index].name}: {exc}") from exc
         bins[source] = BinSums.build(terms, codes[train], len(fit.classes))
+        near_q[source] = near_zero_q(terms, codes[train], len(fit.classes))
     per_frame = np.bincount(work.det_frame, minlength=work.n_frames)
     return FirstPass(
         n_detections=chunk.dataset.parts[chunk.index].n_detections,
@@ -157,7 +161,8 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
         softmax_labels=labels.astype(np.min_scalar_type(len(fit.classes)))
         if fit.score_mode == "softmax" else None,
         bins=bins, calib=None if chunk.calib is None else CalibrationTPs(
-            res[in_calib], raw, fit.det_distance[tp][in_calib], codes[in_calib]))
+            res[in_calib], raw, fit.det_distance[tp][in_calib], codes[in_calib]),
+        near_q=near_q)
 
 
 def _softmax_logits(chunk: Chunk) -> np.ndarray:

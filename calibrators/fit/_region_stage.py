@@ -25,8 +25,9 @@ from calibrators.data import Dump
 from calibrators.evaluation import SUMMARY_LEVELS, MatchResult, tp_residuals
 from calibrators.regions import ConformalRegions, xy_mahalanobis
 
-__all__ = ["CovarianceFit", "RegionFit", "conformal_region_fit", "covariance_fit",
-           "fit_covariance_stage", "fit_region_stage"]
+__all__ = ["SCALE_BOUNDS", "CovarianceFit", "RegionFit", "conformal_region_fit",
+           "covariance_fit", "fit_covariance_stage", "fit_region_stage", "make_scaler",
+           "regression_nll_or_none"]
 
 #: Shrinkage factors searched (a layer spread of mm² may need s in the thousands).
 SCALE_BOUNDS = (1e-3, 1e4)
@@ -78,7 +79,8 @@ def _tp_data(dump: Dump, matched: MatchResult, dims: tuple[str, ...], source: st
             dump.det_distance[tp], names)
 
 
-def _scaler(method: str, min_samples: int) -> Any:
+def make_scaler(method: str, min_samples: int) -> Any:
+    """The unfitted covariance scaler of `method` (depth or shrinkage) as the fit uses it."""
     if method == "depth":
         return DepthScaler(min_samples=min_samples)
     return ShrinkageDepthScaler(min_samples=min_samples, scale_bounds=SCALE_BOUNDS)
@@ -98,7 +100,8 @@ def fit_covariance_stage(fit_on: tuple[Dump, MatchResult], train: tuple[Dump, Ma
         c_res, c_cov, c_dist, c_cls = _tp_data(*calib, dims, source)
         for name in names:
             scaler = _fit_scaler(name, min_samples, res, cov, dist, cls, source)
-            candidates[name] = {"nll": _nll(c_res, scaler.transform(c_cov, c_dist, c_cls))}
+            served = scaler.transform(c_cov, c_dist, c_cls)
+            candidates[name] = {"nll": regression_nll_or_none(c_res, served)}
         chosen = min(names, key=lambda n: np.inf if candidates[n]["nll"] is None
                      else candidates[n]["nll"])
     else:
@@ -132,13 +135,13 @@ def _fit_scaler(name: str, min_samples: int, res: np.ndarray, cov: np.ndarray | 
     try:
         with warnings.catch_warnings():   # s at a bound: Σ carries no (or all) information
             warnings.filterwarnings("ignore", "shrinkage s for class", RuntimeWarning)
-            return _scaler(name, min_samples).fit(res, cov, dist, cls)
+            return make_scaler(name, min_samples).fit(res, cov, dist, cls)
     except ValueError as exc:
         raise ValueError(f"{name} covariance scaling failed with cov_source={source!r}: {exc}"
                          ) from exc
 
 
-def _nll(res: np.ndarray, cov: np.ndarray) -> float | None:
+def regression_nll_or_none(res: np.ndarray, cov: np.ndarray) -> float | None:
     """Regression NLL, or None when a Σ' is singular (the density is undefined)."""
     if len(res) == 0:
         return None

@@ -18,19 +18,21 @@ options)` gives, T and every k to 1e-6 relative, holding one part of the dataset
    first pass returned every fit row's target column, 2 bytes a row, so these passes
    neither match nor read boxes), started where the same seeded subsample (gathered from
    the parts) puts T;
-5. conformal regions (`region_method` conformal, or auto): the fit frames are split into a
+5. covariance and regions (`_stream_stages`): the fit frames are split into a
    training and a calibration part as `fit_profile` splits them (`held_out_frames` of the
    fit frames' tokens with `calibration` and seed + 1, so the same frames whatever the
-   partitioning); k is fit on the training part's depth statistics, and the calibration
-   part's true positives (kept by the first pass: a residual, a raw Σ and two numbers each)
-   give the Mahalanobis scores the conformal radii are fit on, exactly as in memory;
+   partitioning); depth and shrinkage (`s·Σ + k·d·I`) are fit on the training part's
+   summed depth statistics (plus the `near_zero_q` sums shrinkage needs), `auto` choosing by
+   the regression NLL of the calibration part's true positives (kept by the first pass: a
+   residual, a raw Σ per source and two numbers each), whose Mahalanobis scores under the
+   fitted Σ' give the conformal radii, exactly as in memory;
 6. the profile is assembled as `fit_profile` assembles it; its report summarises a seeded
    sample of at most `report_detections` detections of whole fit (and held-out) frames,
    all of them when they fit (the report then equals the in-memory one), and says so.
 
 What needs all the data at once is refused with an `OptionError` naming the option
-(`check_stream_options`): choosing among `auto` candidates on a calibration part, per-class
-score calibrators, shrinkage.
+(`check_stream_options`): choosing among `auto` score candidates on a calibration part and
+per-class score calibrators.
 """
 
 from __future__ import annotations
@@ -45,7 +47,9 @@ import numpy as np
 
 from calibrators.core.errors import OptionError
 from calibrators.core.vocab import COV_SOURCES
-from calibrators.covariance import DepthScaler, add_depth_term, resolve_cov_source
+from calibrators.covariance import (
+    resolve_cov_source,
+)
 from calibrators.data import canonical_order, concat_frames, held_out_frames
 from calibrators.evaluation import ProfileReport, summarize
 from calibrators.fit._chunks import (
@@ -71,13 +75,15 @@ from calibrators.fit._pipeline import (
 from calibrators.fit._region_stage import (
     CovarianceFit,
     RegionFit,
-    conformal_region_fit,
-    covariance_fit,
 )
 from calibrators.fit._score_stage import ScoreFit
+from calibrators.fit._stream_stages import (
+    calibration_frames,
+    stream_covariance,
+    stream_regions,
+)
 from calibrators.io.parquet import ParquetDataset, open_parquet
 from calibrators.profile import CalibrationProfile, make_provenance
-from calibrators.regions import xy_mahalanobis
 from calibrators.scores import (
     SIGMOID_BINS,
     SUBSAMPLE_MIN,
@@ -101,7 +107,7 @@ def check_stream_options(options: FitOptions, n_fit_frames: int | None = None) -
     conformal regions (`auto` means temperature and depth when there is no calibration part:
     `calibration=0`, or fewer than 2 fit frames, `n_fit_frames`)."""
     no_calibration = options.calibration <= 0 or (n_fit_frames is not None and n_fit_frames < 2)
-    for name, thesis in (("score_method", "temperature"), ("cov_method", "depth")):
+    for name, thesis in (("score_method", "temperature"),):
         value = getattr(options, name)
         if value == thesis or (value == "auto" and no_calibration):
             continue
@@ -131,7 +137,7 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     source = check_fit_input(empty, opts)
     held = held_out_frames(ds.frames()[0], opts.holdout, opts.seed)
     check_stream_options(opts, ds.n_frames - int(held.sum()))
-    calib = _calibration_frames(ds.frames()[0], held, opts)
+    calib = calibration_frames(ds.frames()[0], held, opts)
     sources = (source, *_other_sources(empty, source, opts))
     mapper = Mapper(client)
 
@@ -141,10 +147,11 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     report_progress("scores", 0.25)
     temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper)
     report_progress("covariance", 0.4)
-    covs = {s: _depth(ds, s, firsts, opts) for s in sources}
+    tps = None if calib is None else CalibrationTPs.concat([f.calib for f in firsts])
+    covs = {s: stream_covariance(ds.classes, s, firsts, tps, opts) for s in sources}
     scores = ScoreFit(method="temperature", temperature=temperature, params=None)
     report_progress("regions", 0.5)
-    regions = _regions(ds.classes, opts, covs, firsts, calib)
+    regions = stream_regions(ds.classes, opts, covs, tps)
     provenance = make_provenance(
         dump_sha256=ds.source_sha256, n_frames=ds.n_frames, n_detections=ds.n_detections,
         n_ground_truth=ds.n_ground_truth, n_fit_frames=ds.n_frames - int(held.sum()),
@@ -234,53 +241,6 @@ def _chunks(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None, opts
             for i, p in enumerate(ds.parts)]
 
 
-def _calibration_frames(frame_ids: np.ndarray, held: np.ndarray, opts: FitOptions
-                        ) -> np.ndarray | None:
-    """`[F]` the frames of the calibration part, drawn among the fit frames as `fit_profile`
-    draws them (its `_calibration_split`), or None when the fit has none (gaussian regions,
-    `calibration=0`, fewer than 2 fit frames)."""
-    fit = np.flatnonzero(~held)
-    if opts.region_method == "gaussian" or opts.calibration <= 0 or fit.size < 2:
-        if opts.region_method == "conformal":
-            raise OptionError("calibration", "region_method='conformal' needs a calibration "
-                                             "part: calibration > 0 and at least 2 frames")
-        return None
-    out = np.zeros(len(frame_ids), dtype=bool)
-    out[fit] = held_out_frames(frame_ids[fit], opts.calibration, opts.seed + 1)
-    return out
-
-
-def _regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, CovarianceFit],
-             firsts: list[FirstPass], calib: np.ndarray | None) -> dict[str, RegionFit | None]:
-    """The region stage of every covariance source, as `fit_region_stage` fits it in memory:
-    conformal on the calibration part's true positives under the fitted Σ' (gaussian
-    without a calibration part, or with `auto` and fewer than `min_group` of them)."""
-    tps = None if calib is None else CalibrationTPs.concat([f.calib for f in firsts])
-    n = 0 if tps is None else len(tps.labels)
-    out = {}
-    for source, cov in covs.items():
-        method = "gaussian" if tps is None else opts.region_method
-        if "x" not in opts.dims or "y" not in opts.dims:
-            out[source] = None   # no ellipse to serve
-            continue
-        if method == "gaussian" or (method == "auto" and n < opts.min_group):
-            out[source] = RegionFit("gaussian", None, n)
-            continue
-        if tps is None or n == 0:
-            raise ValueError("region_method='conformal' needs a calibration part with true "
-                             "positives (calibration > 0)")
-        k = np.array([cov.depth_k[c] for c in classes])[tps.labels]
-        raw = tps.covariances[source]
-        base = np.zeros((n, len(opts.dims), len(opts.dims))) if raw is None else raw
-        scores = xy_mahalanobis(tps.residuals, add_depth_term(base, tps.distances, k),
-                                opts.dims)
-        out[source] = conformal_region_fit(
-            scores, tps.labels, tps.distances, len(classes), opts.min_group,
-            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
-            floor_delta=opts.floor_delta)
-    return out
-
-
 def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
                  firsts: list[FirstPass], n: int, mapper: Mapper) -> float:
     """T as `TemperatureScaler.fit` finds it on all fit rows (module docstring, step 3)."""
@@ -312,23 +272,6 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
                                 np.concatenate([g[1] for g in got]), scaler.log_bounds())
     scaler.fit_gradient(value_grad, n, width, start)
     return float(scaler.temperature_)
-
-
-def _depth(ds: ParquetDataset, source: str, firsts: list[FirstPass], opts: FitOptions
-           ) -> CovarianceFit:
-    """The depth stage of `source` from the parts' summed `BinSums` (groups named and ordered
-    as `DepthScaler.fit` names and orders them: by class name)."""
-    total = reduce(add, (f.bins[source] for f in firsts))
-    groups, pooled = total.finish()
-    present = sorted((ds.classes[g], g) for g in np.flatnonzero(total.n > 0))
-    try:
-        scaler = DepthScaler(min_samples=opts.min_samples).fit_binned(
-            [groups[g] for _, g in present], pooled, [name for name, _ in present],
-            len(opts.dims))
-    except ValueError as exc:
-        raise ValueError(f"depth covariance scaling failed with cov_source={source!r}: {exc}"
-                         ) from exc
-    return covariance_fit(scaler, ds.classes, "depth")
 
 
 def _report(profile: CalibrationProfile, opts: FitOptions, chunks: list[Chunk],

@@ -1,0 +1,144 @@
+"""The covariance and region stages of a streamed fit (`calibrators.fit._stream`), from what
+the parts' first passes return: the calibration frames drawn as `fit_profile` draws them, the
+depth and shrinkage scalers fit on summed statistics and chosen by the calibration true
+positives' regression NLL, and the conformal radii of those true positives' scores."""
+
+from __future__ import annotations
+
+import warnings
+from functools import reduce
+from operator import add
+from typing import Any
+
+import numpy as np
+
+from calibrators.core.errors import OptionError
+from calibrators.core.vocab import COV_METHODS
+from calibrators.covariance import BinSums, add_depth_term, fit_inputs, near_zero_q
+from calibrators.data import held_out_frames
+from calibrators.fit._chunks import CalibrationTPs, FirstPass
+from calibrators.fit._options import FitOptions
+from calibrators.fit._region_stage import (
+    CovarianceFit,
+    RegionFit,
+    conformal_region_fit,
+    covariance_fit,
+    make_scaler,
+    regression_nll_or_none,
+)
+from calibrators.regions import xy_mahalanobis
+
+__all__ = ["calibration_frames", "stream_covariance", "stream_regions"]
+
+
+def calibration_frames(frame_ids: np.ndarray, held: np.ndarray, opts: FitOptions
+                        ) -> np.ndarray | None:
+    """`[F]` the frames of the calibration part, drawn among the fit frames as `fit_profile`
+    draws them (its `_calibration_split`), or None when the fit has none (nothing to choose
+    and gaussian regions, `calibration=0`, fewer than 2 fit frames)."""
+    fit = np.flatnonzero(~held)
+    needed = "auto" in (opts.score_method, opts.cov_method) or opts.region_method != "gaussian"
+    if not needed or opts.calibration <= 0 or fit.size < 2:
+        if opts.region_method == "conformal":
+            raise OptionError("calibration", "region_method='conformal' needs a calibration "
+                                             "part: calibration > 0 and at least 2 frames")
+        return None
+    out = np.zeros(len(frame_ids), dtype=bool)
+    out[fit] = held_out_frames(frame_ids[fit], opts.calibration, opts.seed + 1)
+    return out
+
+
+def stream_regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, CovarianceFit],
+             tps: CalibrationTPs | None) -> dict[str, RegionFit | None]:
+    """The region stage of every covariance source, as `fit_region_stage` fits it in memory:
+    conformal on the calibration part's true positives under the fitted Σ' (gaussian
+    without a calibration part, or with `auto` and fewer than `min_group` of them)."""
+    n = 0 if tps is None else len(tps.labels)
+    out = {}
+    for source, cov in covs.items():
+        method = "gaussian" if tps is None else opts.region_method
+        if "x" not in opts.dims or "y" not in opts.dims:
+            out[source] = None   # no ellipse to serve
+            continue
+        if method == "gaussian" or (method == "auto" and n < opts.min_group):
+            out[source] = RegionFit("gaussian", None, n)
+            continue
+        if tps is None or n == 0:
+            raise ValueError("region_method='conformal' needs a calibration part with true "
+                             "positives (calibration > 0)")
+        k = np.array([cov.depth_k[c] for c in classes])[tps.labels]
+        raw = tps.covariances[source]
+        base = np.zeros((n, len(opts.dims), len(opts.dims))) if raw is None else raw
+        if cov.method == "shrinkage":   # s·Σ + k·d·I, as a served call scales it
+            base = base * np.array([cov.scale[c] for c in classes])[tps.labels][:, None, None]
+        scores = xy_mahalanobis(tps.residuals, add_depth_term(base, tps.distances, k),
+                                opts.dims)
+        out[source] = conformal_region_fit(
+            scores, tps.labels, tps.distances, len(classes), opts.min_group,
+            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
+            floor_delta=opts.floor_delta)
+    return out
+
+
+def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstPass],
+                tps: CalibrationTPs | None, opts: FitOptions) -> CovarianceFit:
+    """The covariance stage of `source` as `fit_covariance_stage` fits it: with `auto`, each
+    candidate (depth, shrinkage) fit on the training part's summed statistics and scored by
+    the regression NLL of the calibration true positives; the chosen one refit on the
+    training part (conformal regions follow) or on the whole fit part."""
+    method = opts.cov_method
+    names = list(COV_METHODS) if method == "auto" else [method]
+    if source == "none" or (method == "auto" and tps is None):
+        names = ["depth"] if method == "auto" else names   # no Σ to shrink / nothing to choose
+    train = (reduce(add, (f.bins[source] for f in firsts)),
+             sum(f.near_q[source] for f in firsts))
+    candidates: dict[str, dict[str, float | None]] = {}
+    if tps is not None and len(names) > 1:
+        cov = tps.covariances[source]
+        cls = np.asarray(classes)[tps.labels]
+        for name in names:
+            scaler = _binned_scaler(name, source, classes, *train, opts)
+            served = scaler.transform(cov, tps.distances, cls)
+            candidates[name] = {"nll": regression_nll_or_none(tps.residuals, served)}
+        chosen = min(names, key=lambda n: np.inf if candidates[n]["nll"] is None
+                     else candidates[n]["nll"])
+    else:
+        chosen = names[0]
+    fit_on = train
+    if tps is not None and opts.region_method == "gaussian":   # the whole fit part
+        fit_on = tuple(a + b for a, b in zip(train, _calibration_sums(tps, source, classes,
+                                                                       opts), strict=True))
+    return covariance_fit(_binned_scaler(chosen, source, classes, *fit_on, opts), classes,
+                          chosen, candidates)
+
+
+def _binned_scaler(name: str, source: str, classes: tuple[str, ...], total: BinSums,
+                   near_q: np.ndarray, opts: FitOptions) -> Any:
+    """The depth or shrinkage scaler fit on summed statistics (groups named and ordered as
+    the in-memory fit names and orders them: by class name)."""
+    groups, pooled = total.finish()
+    present = sorted((classes[g], g) for g in np.flatnonzero(total.n > 0))
+    keys, index = [name for name, _ in present], [g for _, g in present]
+    try:
+        with warnings.catch_warnings():   # s at a bound: Σ carries no (or all) information
+            warnings.filterwarnings("ignore", "shrinkage s for class", RuntimeWarning)
+            scaler = make_scaler(name, opts.min_samples)
+            if name == "depth":
+                return scaler.fit_binned([groups[g] for g in index], pooled, keys,
+                                         len(opts.dims))
+            return scaler.fit_binned([groups[g] for g in index], pooled, near_q[index], keys,
+                                     len(opts.dims), has_sigma=source != "none")
+    except ValueError as exc:
+        raise ValueError(f"{name} covariance scaling failed with cov_source={source!r}: {exc}"
+                         ) from exc
+
+
+def _calibration_sums(tps: CalibrationTPs, source: str, classes: tuple[str, ...],
+                      opts: FitOptions) -> tuple[BinSums, np.ndarray]:
+    """The depth statistics and `near_zero_q` sums of the calibration true positives."""
+    n_classes = len(classes)
+    if not len(tps.labels):
+        return BinSums.build_empty(len(opts.dims), n_classes), np.zeros(n_classes)
+    terms = fit_inputs(tps.residuals, tps.covariances[source], tps.distances, tps.labels)[5]
+    return (BinSums.build(terms, tps.labels, n_classes),
+            near_zero_q(terms, tps.labels, n_classes))
