@@ -6,9 +6,12 @@ chunk by chunk, written with `ParquetWriter` as float32, one decoder layer, give
 covariances) is fit by `fit_profile_stream` in a child process run under `/usr/bin/time -v`
 (its peak RSS is the figure), then on `distributed.LocalCluster(n_workers=2)` (worker
 processes; its profile must equal the streamed one to 1e-6 in T and every k). Options:
-the thesis methods (`calibration=0`), the defaults otherwise.
+the thesis methods (`calibration=0`), the defaults otherwise; with `--conformal`, one
+temperature and everything else as the defaults (a calibration part, depth or shrinkage
+chosen on it, conformal regions with cell and tail floors), section `stream-fit conformal`.
 
     .venv/bin/python -m bench.bench_stream_fit                       # 20M, ~15 min
+    .venv/bin/python -m bench.bench_stream_fit --conformal           # 20M, ~15 min
     .venv/bin/python -m bench.bench_stream_fit --detections 1000000 --no-write
 
 The dataset is written under runs/ (gitignored) and deleted afterwards unless --keep.
@@ -34,6 +37,7 @@ T_TRUE = 2.0
 K_TRUE = {c: DEFAULT_DEPTH_K[c] / 4 for c in CLASSES10}
 FRAMES_PER_CHUNK, GT_PER_FRAME = 100, 20
 OPTIONS = {"calibration": 0.0}
+CONFORMAL = {"score_method": "temperature"}
 ROOT = Path(__file__).resolve().parent.parent
 
 
@@ -58,27 +62,29 @@ def generate(path: Path, n_detections: int, rows_per_part: int) -> tuple[int, fl
     return total, time.perf_counter() - start
 
 
-def child_fit(path: str, out: str, dask: str | None) -> None:
+def child_fit(path: str, out: str, dask: str | None, options: dict) -> None:
     """Fit (here or on Dask) and write the profile JSON and the fit's wall time."""
     from calibrators.fit import fit_profile_stream
 
     start = time.perf_counter()
     if dask is None:
-        profile = fit_profile_stream(path, **OPTIONS)
+        profile = fit_profile_stream(path, **options)
     else:
         from calibrators.fit import dask_client
 
         with dask_client(dask) as client:
             start = time.perf_counter()
-            profile = fit_profile_stream(path, client=client, **OPTIONS)
+            profile = fit_profile_stream(path, client=client, **options)
     seconds = time.perf_counter() - start
     Path(out).write_text(json.dumps({"seconds": seconds, "profile": profile.to_dict()}))
 
 
-def run_child(path: Path, out: Path, dask: str | None) -> tuple[dict, float, float | None, str]:
+def run_child(path: Path, out: Path, dask: str | None, options: dict
+              ) -> tuple[dict, float, float | None, str]:
     """Run `child_fit` in a child process under /usr/bin/time -v: (result, wall s, peak RSS
     in GB or None, how RSS was measured)."""
-    cmd = [sys.executable, "-m", "bench.bench_stream_fit", "--child", str(path), str(out)]
+    cmd = [sys.executable, "-m", "bench.bench_stream_fit", "--child", str(path), str(out),
+           "--child-options", json.dumps(options)]
     if dask:
         cmd += ["--child-dask", dask]
     start = time.perf_counter()
@@ -107,15 +113,22 @@ def max_rel(a: dict, b: dict) -> float:
 
 
 def table(n: int, gen_s: float, disk_gb: float, parts: int, streamed: dict, s_wall: float,
-          rss: float | None, how: str, dask: dict | None, d_wall: float | None) -> str:
+          rss: float | None, how: str, dask: dict | None, d_wall: float | None,
+          options: dict) -> str:
     p = streamed["profile"]
+    scaling = (p.get("covariance_scaling") or {}).get("method", "depth")
+    stages = (f"temperature, {scaling} chosen on the calibration part, conformal regions fit on "
+              f"{p['provenance']['n_calibration_frames']:,} calibration frames; with "
+              f"shrinkage the k below are those of s·Σ + k·d·I, not the generating k"
+              if (p.get("regions") or {}).get("method") == "conformal"
+              else "temperature, depth, gaussian")
     k_err = {c: p["depth_k"][c] / K_TRUE[c] - 1 for c in K_TRUE}
     worst = max(k_err, key=lambda c: abs(k_err[c]))
     lines = [
         f"Streamed fit of a synthetic Parquet dataset of {n:,} detections "
         f"({parts} parts of whole frames, float32, {disk_gb:.2f} GB on disk, written in "
         f"{gen_s:.0f} s), true T = {T_TRUE} and per-class k = the synthetic defaults / 4; "
-        f"options {OPTIONS} (temperature, depth, gaussian), sigmoid scores, given 2x2 "
+        f"options {options} ({stages}), sigmoid scores, given 2x2 "
         f"covariances. Peak RSS by {how}.", "",
         "| fit | wall (s) | peak RSS (GB) | T (error) | worst class k error | "
         "max rel. diff to streamed (T, k) |",
@@ -145,10 +158,14 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--no-write", action="store_true", help="do not touch docs/")
     parser.add_argument("--child", nargs=2, help=argparse.SUPPRESS)
     parser.add_argument("--child-dask", help=argparse.SUPPRESS)
+    parser.add_argument("--child-options", help=argparse.SUPPRESS)
+    parser.add_argument("--conformal", action="store_true",
+                        help="one temperature, the other stages as the defaults")
     args = parser.parse_args(argv)
     if args.child:
-        child_fit(*args.child, args.child_dask)
+        child_fit(*args.child, args.child_dask, json.loads(args.child_options))
         return
+    options = CONFORMAL if args.conformal else OPTIONS
 
     path = Path(args.dir) / "dataset"
     try:
@@ -163,23 +180,39 @@ def main(argv: list[str] | None = None) -> None:
         parts = len(list((path / "detections").glob("*.parquet")))
         print(f"dataset: {n:,} detections, {parts} parts, {disk:.2f} GB, {gen_s:.0f} s",
               flush=True)
-        streamed, s_wall, rss, how = run_child(path, path.parent / "streamed.json", None)
+        streamed, s_wall, rss, how = run_child(path, path.parent / "streamed.json", None,
+                                               options)
         print(f"streamed: {streamed['seconds']:.0f} s, peak RSS {rss} GB, "
               f"T {streamed['profile']['temperature']:.6f}", flush=True)
         dask = d_wall = None
         if args.dask:
-            dask, d_wall, _, _ = run_child(path, path.parent / "dask.json", args.dask)
+            dask, d_wall, _, _ = run_child(path, path.parent / "dask.json", args.dask, options)
             print(f"dask: {dask['seconds']:.0f} s, max rel diff "
                   f"{max_rel(dask['profile'], streamed['profile']):.2e}", flush=True)
     finally:
         if not args.keep:
             shutil.rmtree(path, ignore_errors=True)
-    markdown = table(n, gen_s, disk, parts, streamed, s_wall, rss, how, dask, d_wall)
+    markdown = table(n, gen_s, disk, parts, streamed, s_wall, rss, how, dask, d_wall, options)
+    if args.conformal:
+        markdown += "\n\n" + regions_line(streamed["profile"], dask)
     print(markdown)
     if not args.no_write:
         from bench._report import write_section
 
-        write_section("stream-fit", markdown)
+        write_section("stream-fit conformal" if args.conformal else "stream-fit", markdown)
+
+
+def regions_line(p: dict, dask: dict | None) -> str:
+    """The conformal regions' calibration true positives and the served 90 % radius of the
+    first group, and whether the Dask fit's regions equal the streamed ones."""
+    conf = (p.get("regions") or {}).get("conformal")
+    if conf is None:
+        return "Regions: gaussian."
+    n = sum(sum(row) for row in conf["counts"])
+    same = "n/a" if dask is None else str(dask["profile"]["regions"]["conformal"]["counts"]
+                                          == conf["counts"])
+    return (f"Conformal regions fit on {n:,} calibration true positives in "
+            f"{len(conf['groups'])} groups; Dask's cell counts equal the streamed ones: {same}.")
 
 
 if __name__ == "__main__":
