@@ -74,22 +74,12 @@ class FirstPass:
 class CalibrationTPs:
     """The true positives of a part's calibration frames: residuals `[M, D]`, raw Σ
     `[M, D, D]` per covariance source (None for `none`), distances `[M]` (m), class indices
-    `[M]`; `concat` joins the parts' (the region stage fits on all of them)."""
+    `[M]` (the stream's covariance and region stages read them part by part)."""
 
     residuals: np.ndarray
     covariances: dict[str, np.ndarray | None]
     distances: np.ndarray
     labels: np.ndarray
-
-    @staticmethod
-    def concat(parts: list[CalibrationTPs]) -> CalibrationTPs:
-        return CalibrationTPs(
-            np.concatenate([p.residuals for p in parts]),
-            {s: None if parts[0].covariances[s] is None
-             else np.concatenate([p.covariances[s] for p in parts])
-             for s in parts[0].covariances},
-            np.concatenate([p.distances for p in parts]),
-            np.concatenate([p.labels for p in parts]))
 
 
 def _work(chunk: Chunk, logits_only: bool = False) -> Dump:

@@ -53,7 +53,6 @@ from calibrators.covariance import (
 from calibrators.data import canonical_order, concat_frames, held_out_frames
 from calibrators.evaluation import ProfileReport, summarize
 from calibrators.fit._chunks import (
-    CalibrationTPs,
     Chunk,
     FirstPass,
     first_pass,
@@ -147,7 +146,7 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     report_progress("scores", 0.25)
     temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper)
     report_progress("covariance", 0.4)
-    tps = None if calib is None else CalibrationTPs.concat([f.calib for f in firsts])
+    tps = None if calib is None else [f.calib for f in firsts]
     covs = {s: stream_covariance(ds.classes, s, firsts, tps, opts) for s in sources}
     scores = ScoreFit(method="temperature", temperature=temperature, params=None)
     report_progress("regions", 0.5)

@@ -49,11 +49,12 @@ def calibration_frames(frame_ids: np.ndarray, held: np.ndarray, opts: FitOptions
 
 
 def stream_regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, CovarianceFit],
-             tps: CalibrationTPs | None) -> dict[str, RegionFit | None]:
+                   tps: list[CalibrationTPs] | None) -> dict[str, RegionFit | None]:
     """The region stage of every covariance source, as `fit_region_stage` fits it in memory:
-    conformal on the calibration part's true positives under the fitted Σ' (gaussian
-    without a calibration part, or with `auto` and fewer than `min_group` of them)."""
-    n = 0 if tps is None else len(tps.labels)
+    conformal on the calibration part's true positives (`tps`, per part) under the fitted Σ'
+    (gaussian without a calibration part, or with `auto` and fewer than `min_group` of them).
+    The scores are computed part by part: only they, the classes and distances are whole."""
+    n = 0 if tps is None else sum(len(p.labels) for p in tps)
     out = {}
     for source, cov in covs.items():
         method = "gaussian" if tps is None else opts.region_method
@@ -66,26 +67,37 @@ def stream_regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, C
         if tps is None or n == 0:
             raise ValueError("region_method='conformal' needs a calibration part with true "
                              "positives (calibration > 0)")
-        k = np.array([cov.depth_k[c] for c in classes])[tps.labels]
-        raw = tps.covariances[source]
-        base = np.zeros((n, len(opts.dims), len(opts.dims))) if raw is None else raw
-        if cov.method == "shrinkage":   # s·Σ + k·d·I, as a served call scales it
-            base = base * np.array([cov.scale[c] for c in classes])[tps.labels][:, None, None]
-        scores = xy_mahalanobis(tps.residuals, add_depth_term(base, tps.distances, k),
-                                opts.dims)
+        scores = np.concatenate([xy_mahalanobis(p.residuals, _served(p, source, cov, classes,
+                                                                     opts), opts.dims)
+                                 for p in tps])
         out[source] = conformal_region_fit(
-            scores, tps.labels, tps.distances, len(classes), opts.min_group,
+            scores, np.concatenate([p.labels for p in tps]),
+            np.concatenate([p.distances for p in tps]), len(classes), opts.min_group,
             opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
             floor_delta=opts.floor_delta)
     return out
 
 
+def _served(part: CalibrationTPs, source: str, cov: CovarianceFit, classes: tuple[str, ...],
+            opts: FitOptions) -> np.ndarray:
+    """Σ' `[M, D, D]` of a part's calibration true positives, as a served call scales it:
+    `Σ + k·d·I`, or `s·Σ + k·d·I` with shrinkage (Σ = 0 for source none)."""
+    n, dim = len(part.labels), len(opts.dims)
+    raw = part.covariances[source]
+    base = np.zeros((n, dim, dim)) if raw is None else raw
+    if cov.method == "shrinkage":
+        base = base * np.array([cov.scale[c] for c in classes])[part.labels][:, None, None]
+    k = np.array([cov.depth_k[c] for c in classes])[part.labels]
+    return add_depth_term(base, part.distances, k)
+
+
 def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstPass],
-                tps: CalibrationTPs | None, opts: FitOptions) -> CovarianceFit:
+                      tps: list[CalibrationTPs] | None, opts: FitOptions) -> CovarianceFit:
     """The covariance stage of `source` as `fit_covariance_stage` fits it: with `auto`, each
     candidate (depth, shrinkage) fit on the training part's summed statistics and scored by
-    the regression NLL of the calibration true positives; the chosen one refit on the
-    training part (conformal regions follow) or on the whole fit part."""
+    the regression NLL of the calibration true positives (a mean over parts, weighted by
+    their counts); the chosen one refit on the training part (conformal regions follow) or
+    on the whole fit part."""
     method = opts.cov_method
     names = list(COV_METHODS) if method == "auto" else [method]
     if source == "none" or (method == "auto" and tps is None):
@@ -94,12 +106,9 @@ def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstP
              sum(f.near_q[source] for f in firsts))
     candidates: dict[str, dict[str, float | None]] = {}
     if tps is not None and len(names) > 1:
-        cov = tps.covariances[source]
-        cls = np.asarray(classes)[tps.labels]
         for name in names:
             scaler = _binned_scaler(name, source, classes, *train, opts)
-            served = scaler.transform(cov, tps.distances, cls)
-            candidates[name] = {"nll": regression_nll_or_none(tps.residuals, served)}
+            candidates[name] = {"nll": _held_out_nll(scaler, tps, source, classes)}
         chosen = min(names, key=lambda n: np.inf if candidates[n]["nll"] is None
                      else candidates[n]["nll"])
     else:
@@ -110,6 +119,23 @@ def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstP
                                                                        opts), strict=True))
     return covariance_fit(_binned_scaler(chosen, source, classes, *fit_on, opts), classes,
                           chosen, candidates)
+
+
+def _held_out_nll(scaler: Any, tps: list[CalibrationTPs], source: str,
+                  classes: tuple[str, ...]) -> float | None:
+    """The regression NLL of all calibration true positives under `scaler`, part by part
+    (None when there are none or a Σ' is singular, as in memory)."""
+    total, count = 0.0, 0
+    for p in tps:
+        if not len(p.labels):
+            continue
+        served = scaler.transform(p.covariances[source], p.distances,
+                                  np.asarray(classes)[p.labels])
+        nll = regression_nll_or_none(p.residuals, served)
+        if nll is None:
+            return None
+        total, count = total + nll * len(p.labels), count + len(p.labels)
+    return None if count == 0 else total / count
 
 
 def _binned_scaler(name: str, source: str, classes: tuple[str, ...], total: BinSums,
@@ -133,12 +159,15 @@ def _binned_scaler(name: str, source: str, classes: tuple[str, ...], total: BinS
                          ) from exc
 
 
-def _calibration_sums(tps: CalibrationTPs, source: str, classes: tuple[str, ...],
+def _calibration_sums(tps: list[CalibrationTPs], source: str, classes: tuple[str, ...],
                       opts: FitOptions) -> tuple[BinSums, np.ndarray]:
-    """The depth statistics and `near_zero_q` sums of the calibration true positives."""
+    """The depth statistics and `near_zero_q` sums of the calibration true positives, built
+    part by part (the sums add)."""
     n_classes = len(classes)
-    if not len(tps.labels):
-        return BinSums.build_empty(len(opts.dims), n_classes), np.zeros(n_classes)
-    terms = fit_inputs(tps.residuals, tps.covariances[source], tps.distances, tps.labels)[5]
-    return (BinSums.build(terms, tps.labels, n_classes),
-            near_zero_q(terms, tps.labels, n_classes))
+    bins, near = BinSums.build_empty(len(opts.dims), n_classes), np.zeros(n_classes)
+    for p in tps:
+        if len(p.labels):
+            terms = fit_inputs(p.residuals, p.covariances[source], p.distances, p.labels)[5]
+            bins = bins + BinSums.build(terms, p.labels, n_classes)
+            near = near + near_zero_q(terms, p.labels, n_classes)
+    return bins, near
