@@ -129,6 +129,10 @@ def run_fit(args: argparse.Namespace) -> int:
     return 0
 
 
+#: A stage whose method was named, or that had no calibration part to choose on.
+_NOT_CHOSEN = "(named, or no calibration part to choose on: no held-out score)"
+
+
 def stages_text(report: dict[str, Any]) -> str:
     """One line per stage of a fit report: the chosen method and its held-out score (the
     selection split's NLL / ECE for scores and covariances; the held-out part's coverage of
@@ -137,13 +141,15 @@ def stages_text(report: dict[str, Any]) -> str:
     lines = ["stages (chosen method: held-out score on the selection split)"]
     score, cov = sel.get("score"), sel.get("covariance")
     if score:
-        best = score["candidates"].get(score["chosen"], {})
-        lines.append(f"  score calibrator    {score['chosen']:<18} NLL {best.get('nll', 0):.4f}"
-                     f"  ECE {best.get('ece', 0):.4f}  ({len(score['candidates'])} candidates)")
+        best = score["candidates"].get(score["chosen"])
+        lines.append(f"  score calibrator    {score['chosen']:<18} " + (
+            f"NLL {best.get('nll', 0):.4f}  ECE {best.get('ece', 0):.4f}  "
+            f"({len(score['candidates'])} candidates)" if best else _NOT_CHOSEN))
     if cov:
-        best = cov["candidates"].get(cov["chosen"], {})
-        lines.append(f"  covariance scaling  {cov['chosen']:<18} regression NLL "
-                     f"{best.get('nll', 0):.4f}  ({len(cov['candidates'])} candidates)")
+        best = cov["candidates"].get(cov["chosen"])
+        lines.append(f"  covariance scaling  {cov['chosen']:<18} " + (
+            f"regression NLL {best.get('nll') or 0:.4f}  ({len(cov['candidates'])} candidates)"
+            if best else _NOT_CHOSEN))
     regions = sel.get("regions")
     if regions:
         held = ((report.get("holdout") or {}).get("regions") or {}).get("coverage")

@@ -48,6 +48,28 @@ def test_a_dataset_is_fit_in_place_to_the_in_memory_profile(client, dump_given):
     assert served["temperature"] == pytest.approx(memory.temperature, rel=1e-6)
 
 
+def test_a_dataset_fit_with_one_temperature_serves_conformal_regions(client, dump_given):
+    """Covariance scaling chosen on the calibration part and conformal radii, streamed,
+    serve what the in-memory fit serves."""
+    r = _fit(client, dataset="val", score_method="temperature", min_group="30")
+    assert r.status_code == 202, r.text
+    job = wait_job(client, r.json()["job_id"])
+    assert job["state"] == "succeeded", job
+    served = client.get("/v1/profiles/streamed/1").json()["profile"]
+    memory = fit_profile(dump_given, score_method="temperature", min_group=30)
+    assert served["regions"]["method"] == memory.region_method == "conformal"
+    assert served["regions"]["conformal"]["counts"] == memory.regions["conformal"]["counts"]
+    assert (served["covariance_scaling"] or {}).get("method") == \
+        (memory.covariance_scaling or {}).get("method")
+    body = {"profile": "streamed", "levels": [0.9], "frames": [{"frame_id": "f", "detections": [
+        {"logits": dump_given.det_logits[0, -1].tolist(),
+         "box": dump_given.det_boxes[0, -1].tolist(),
+         "covariance": dump_given.det_cov[0].tolist()}]}]}
+    ellipse = client.post("/v1/calibrate", json=body).json()["frames"][0]["detections"][0][
+        "ellipses"]["0.9"]
+    assert ellipse["method"] == "conformal" and ellipse["calibration_n"] > 0
+
+
 @pytest.mark.parametrize(("name", "words"), [
     ("../outside", "without '..'"), ("/etc", "without '..'"), ("nope", "is not a folder"),
     ("escape", "leads outside"), ("", "is empty"),
