@@ -29,6 +29,7 @@ from calibrators.covariance._sources import (
     source_arrays,
     source_covariance,
     source_inputs,
+    takes_phrase,
 )
 from calibrators.covariance._spectral import spectral, spectral_2x2
 
@@ -36,4 +37,4 @@ __all__ = ["MANTISSA_BITS", "OCTAVES", "SOURCE_ARRAYS", "BinSums", "DepthScaler"
            "ShrinkageDepthScaler", "add_depth_term", "brent_k", "check_hypotheses", "depth_bins",
            "dim_indices", "fit_inputs", "hypotheses_covariance", "layer_spread", "log_bin",
            "log_bin_low", "near_zero_q", "raw_covariances", "resolve_cov_source", "source_arrays",
-           "source_covariance", "source_inputs", "spectral", "spectral_2x2"]
+           "source_covariance", "source_inputs", "spectral", "spectral_2x2", "takes_phrase"]

@@ -10,7 +10,7 @@ pi, which holds for any sensible decoder).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -72,6 +72,12 @@ def source_inputs(source: str) -> str:
     """What a calibrate call carries for `source`, in words: `hyp_boxes with hyp_scores`,
     `neither` (none), ..."""
     return " with ".join(SOURCE_ARRAYS[source]) or "neither"
+
+
+def takes_phrase(sources: Iterable[str]) -> str:
+    """`; it takes covariances or layer_boxes` for several `sources` ("" for one)."""
+    names = list(sources)
+    return "" if len(names) < 2 else "; it takes " + " or ".join(map(source_inputs, names))
 
 
 def source_covariance(source: str, dims: Sequence[str], *,

@@ -254,16 +254,25 @@ def dump_digest(dump: Dump) -> str:
     return h.hexdigest()
 
 
+def has_calibration_part(opts: FitOptions, n_fit_frames: int) -> bool:
+    """Whether a fit with `opts` on `n_fit_frames` keeps a calibration part: something needs
+    it (an `auto` method to choose or conformal radii to fit), `calibration > 0` and at least
+    2 frames; an `OptionError` when `region_method='conformal'` needs one it cannot have."""
+    needed = "auto" in (opts.score_method, opts.cov_method) or opts.region_method != "gaussian"
+    if opts.calibration <= 0 or not needed or n_fit_frames < 2:
+        if opts.region_method == "conformal":
+            raise OptionError("calibration", "region_method='conformal' needs a calibration "
+                                             "part: calibration > 0 and at least 2 frames")
+        return False
+    return True
+
+
 def _calibration_split(fit_part: Dump, matched: MatchResult, opts: FitOptions
                        ) -> tuple[tuple[Dump, MatchResult], tuple[Dump, MatchResult] | None]:
     """(training part, calibration part or None), each with its matching: a seeded
     `opts.calibration` fraction of the fit part's frames, when something needs it (an `auto`
     method to choose or conformal radii to fit). A part keeps its frames' matching."""
-    needed = "auto" in (opts.score_method, opts.cov_method) or opts.region_method != "gaussian"
-    if opts.calibration <= 0 or not needed or fit_part.n_frames < 2:
-        if opts.region_method == "conformal":
-            raise OptionError("calibration", "region_method='conformal' needs a calibration "
-                                             "part: calibration > 0 and at least 2 frames")
+    if not has_calibration_part(opts, fit_part.n_frames):
         return (fit_part, matched), None
     train, calib = split_frames(fit_part, opts.calibration, opts.seed + 1)
     return (train, match_dump(train, opts.threshold)), (calib, match_dump(calib,

@@ -12,12 +12,12 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.core.errors import OptionError
 from calibrators.core.vocab import COV_METHODS
 from calibrators.covariance import BinSums, add_depth_term, fit_inputs, near_zero_q
 from calibrators.data import held_out_frames
 from calibrators.fit._chunks import CalibrationTPs, FirstPass
 from calibrators.fit._options import FitOptions
+from calibrators.fit._pipeline import has_calibration_part
 from calibrators.fit._region_stage import (
     CovarianceFit,
     RegionFit,
@@ -37,11 +37,7 @@ def calibration_frames(frame_ids: np.ndarray, held: np.ndarray, opts: FitOptions
     draws them (its `_calibration_split`), or None when the fit has none (nothing to choose
     and gaussian regions, `calibration=0`, fewer than 2 fit frames)."""
     fit = np.flatnonzero(~held)
-    needed = "auto" in (opts.score_method, opts.cov_method) or opts.region_method != "gaussian"
-    if not needed or opts.calibration <= 0 or fit.size < 2:
-        if opts.region_method == "conformal":
-            raise OptionError("calibration", "region_method='conformal' needs a calibration "
-                                             "part: calibration > 0 and at least 2 frames")
+    if not has_calibration_part(opts, fit.size):
         return None
     out = np.zeros(len(frame_ids), dtype=bool)
     out[fit] = held_out_frames(frame_ids[fit], opts.calibration, opts.seed + 1)

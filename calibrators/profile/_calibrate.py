@@ -45,6 +45,7 @@ from calibrators.covariance import (
     check_hypotheses,
     source_covariance,
     source_inputs,
+    takes_phrase,
 )
 from calibrators.regions import (
     MAX_LEVELS,
@@ -175,14 +176,16 @@ def calibrate_detections(profile: CalibrationProfile, *, logits: np.ndarray | No
     confidence = check_levels([ellipse_confidence], "ellipse_confidence")[0]
     served = [float(confidence)] + ([] if wanted is None else
                                     [float(q) for q in wanted if q != confidence])
-    regions, radii, method, groups, support = _regions(profile, stage, cov, distances,
-                                                       labels_, served)
+    regions, radii, method, groups, index = _regions(profile, stage, cov, distances, labels_,
+                                                     served)
+    support = ({}, {}) if wanted is None or method is None else _guarantees(
+        stage, index, [float(q) for q in wanted], len(labels_))
     out = CalibratedDetections(
         labels=labels_, scores=scores_, scores_raw=raw, class_scores=class_scores,
         covariances=cov, ellipses=regions.get(float(confidence)), distances=distances,
         regions=_at(regions, wanted), region_method=method, region_groups=groups,
-        region_radii=_at(radii, wanted), region_guarantees=_at(support[0], wanted),
-        region_counts=_at(support[1], wanted), cov_source=stage.source,
+        region_radii=_at(radii, wanted), region_guarantees=support[0],
+        region_counts=support[1], cov_source=stage.source,
         classes=tuple(profile.classes), cov_dims=tuple(profile.cov_dims),
         ellipse_confidence=float(confidence))
     _check_finite(out, covariances is not None, radii.get(float(confidence)))
@@ -292,13 +295,12 @@ def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None
     if passed, else the spread of the `hypotheses` (`hyp_boxes`, `hyp_scores`) if passed
     and the profile serves them, else the spread of `layer_boxes` likewise, else none (Σ = 0)
     if the profile serves it; a FieldError names what the profile needs."""
-    dim = len(profile.cov_dims)
-    stages = profile.source_stages
+    dim, stages = len(profile.cov_dims), profile.source_stages
     if covariances is not None:
         if "given" not in stages:
             raise FieldError("covariances", f"covariances were given but the profile's "
                                             f"cov_source is {profile.cov_source!r}: its k was "
-                                            f"fit without them{_takes(profile)}")
+                                            f"fit without them{takes_phrase(stages)}")
         cov = as_float_array("covariances", covariances, ndim=3)
         if cov.shape[1:] != (dim, dim):
             raise FieldError("covariances", f"covariances are {cov.shape[1]}x{cov.shape[2]} "
@@ -326,17 +328,10 @@ def _base_covariance(profile: CalibrationProfile, covariances: np.ndarray | None
         if source in stages and source in ("layers", "hypotheses"):
             raise FieldError(next(iter(SOURCE_ARRAYS[source])),
                              f"{source_inputs(source)} (the profile's cov_source is "
-                             f"{profile.cov_source!r}) is required{_takes(profile)}")
+                             f"{profile.cov_source!r}) is required{takes_phrase(stages)}")
     raise FieldError("covariances", f"covariances are required: the profile was fit on given "
                                     f"covariances (cov_source 'given') over cov_dims "
                                     f"{list(profile.cov_dims)}")
-
-
-def _takes(profile: CalibrationProfile) -> str:
-    """`; it takes ...` for a profile serving several covariance sources."""
-    if len(profile.source_stages) < 2:
-        return ""
-    return "; it takes " + " or ".join(source_inputs(s) for s in profile.source_stages)
 
 
 def _scaled(profile: CalibrationProfile, stage: SourceStage, base: np.ndarray,
@@ -350,42 +345,46 @@ def _scaled(profile: CalibrationProfile, stage: SourceStage, base: np.ndarray,
 
 
 def _regions(profile: CalibrationProfile, stage: SourceStage, cov: np.ndarray,
-             distances: np.ndarray, labels: np.ndarray, levels: list[float]) -> tuple[
-        dict[float, Ellipse], dict[float, np.ndarray], str | None, list[str] | None,
-        tuple[dict[float, np.ndarray], dict[float, np.ndarray]]]:
+             distances: np.ndarray, labels: np.ndarray, levels: list[float]
+             ) -> tuple[dict[float, Ellipse], dict[float, np.ndarray], str | None,
+                        list[str] | None, np.ndarray | None]:
     """Ellipses of the x, y block of `cov [N, D, D]` at each level, their radii `[N]`, the
-    method, the serving groups, and per level what each guarantees and on how many calibration
-    scores `[N]`; ({}, {}, None, None, ({}, {})) if cov_dims lack x or y."""
+    method, the serving groups and their indices `[N]` (None for gaussian); all empty or
+    None if cov_dims lack x or y."""
     if "x" not in profile.cov_dims or "y" not in profile.cov_dims:
-        return {}, {}, None, None, ({}, {})
+        return {}, {}, None, None, None
     ix, iy = profile.cov_dims.index("x"), profile.cov_dims.index("y")
     block = cov[:, [ix, iy]][:, :, [ix, iy]]
     method, conformal = stage.region_method, stage.conformal
     n = len(labels)
     if conformal is None:
-        full = {float(q): (np.full(n, gaussian_radius(q)), np.full(n, "none", dtype=object),
-                           np.full(n, -1, dtype=np.int64)) for q in levels}
-        return ({float(q): ellipse(block, q) for q in levels}, {q: v[0] for q, v in full.items()},
-                method, None, ({q: v[1] for q, v in full.items()},
-                               {q: v[2] for q, v in full.items()}))
-    # `levels` is the ellipse confidence plus up to MAX_LEVELS requested levels: the tables
-    # take at most MAX_LEVELS at once
+        return ({float(q): ellipse(block, q) for q in levels},
+                {float(q): np.full(n, gaussian_radius(q)) for q in levels}, method, None, None)
+    # `levels` is the ellipse confidence plus up to MAX_LEVELS requested levels: radii() takes
+    # at most MAX_LEVELS at once
     index = conformal.group_index(labels, distances)
-    chunks = [levels[i:i + MAX_LEVELS] for i in range(0, len(levels), MAX_LEVELS)]
-    radii = np.concatenate([conformal.radius_table(c) for c in chunks], axis=1)[index]
-    holds = [conformal.guarantee_table(c) for c in chunks]
-    names = np.concatenate([h[0] for h in holds], axis=1)[index]
-    counts = np.concatenate([h[1] for h in holds], axis=1)[index]
-    group = {int(g): conformal.group_name(conformal.groups_[g], profile.classes)
+    radii = np.concatenate([conformal.radius_table(levels[i:i + MAX_LEVELS])
+                            for i in range(0, len(levels), MAX_LEVELS)], axis=1)[index]
+    names = {int(g): conformal.group_name(conformal.groups_[g], profile.classes)
              for g in np.unique(index)}
     # Σ' was built from checked Σ (or a spread) by adding k·d·I: symmetric PSD, or an
     # overflow that `_check_finite` places
     return (dict(zip(map(float, levels), radius_ellipses(block, radii, check=False),
                      strict=True)),
             {float(q): radii[:, j] for j, q in enumerate(levels)}, method,
-            [group[g] for g in index.tolist()],
-            ({float(q): names[:, j] for j, q in enumerate(levels)},
-             {float(q): counts[:, j] for j, q in enumerate(levels)}))
+            [names[g] for g in index.tolist()], index)
+
+
+def _guarantees(stage: SourceStage, index: np.ndarray | None, levels: list[float], n: int
+                ) -> tuple[dict[float, np.ndarray], dict[float, np.ndarray]]:
+    """Per requested level, what each region guarantees and on how many calibration scores
+    `[N]`: its group's row of `guarantee_table`, or "none" and -1 for gaussian regions."""
+    if stage.conformal is None or index is None:
+        return ({q: np.full(n, "none", dtype=object) for q in levels},
+                {q: np.full(n, -1, dtype=np.int64) for q in levels})
+    names, counts = stage.conformal.guarantee_table(levels)
+    return ({q: names[index, j] for j, q in enumerate(levels)},
+            {q: counts[index, j] for j, q in enumerate(levels)})
 
 
 def _at(table: dict[float, Any], wanted: np.ndarray | None) -> dict[float, Any]:

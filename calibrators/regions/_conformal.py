@@ -126,7 +126,6 @@ class ConformalRegions:
         keys, reasons = partition(counts, min_group)
         index: dict[tuple, int] = {}
         self.__dict__.pop("_tables", None)   # radius and guarantee tables of the previous fit
-        self.__dict__.pop("_guarantees", None)
         self.groups_: list[ConformalGroup] = []
         serving = np.zeros((len(known) + 1, n_bins), dtype=np.int64)  # last row: unknown
         small = [c for c in range(len(known)) if keys[c][0][0] == "pool"]
@@ -177,18 +176,13 @@ class ConformalRegions:
         classes does; "marginal": only all scores together; "scaled": a cell floor's widened
         group radius, no finite-sample guarantee of its own), and the calibration scores
         behind it `[G, Q]` (int). A group serves one kind of cell, so this is per group."""
-        check_fitted(self, "serving_")
-        q = check_levels(levels)
-        tables = self.__dict__.setdefault("_guarantees", {})   # emptied by `fit`
-        hit = tables.get(q.tobytes())
-        if hit is None:
+        def build(q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
             kinds = self._kinds()
             rows = [g.guarantee(q, kinds[i]) for i, g in enumerate(self.groups_)]
-            hit = (np.array([r[0] for r in rows], dtype=object).reshape(len(rows), q.size),
-                   np.array([r[1] for r in rows], dtype=np.int64).reshape(len(rows), q.size))
-            if len(tables) < 64:
-                tables[q.tobytes()] = hit
-        return hit
+            return (np.array([r[0] for r in rows], dtype=object).reshape(len(rows), q.size),
+                    np.array([r[1] for r in rows], dtype=np.int64).reshape(len(rows), q.size))
+
+        return self._per_levels("guarantees", levels, build)
 
     def _kinds(self) -> list[str]:
         """Per group, the guarantee its own radius gives the cells it serves (a cell floor:
@@ -209,17 +203,25 @@ class ConformalRegions:
     def radius_table(self, levels: Sequence[float]) -> np.ndarray:
         """Radii `[G, Q]` of every group (rows of `groups_`) at `levels [Q]`; `radii` is its
         rows at `group_index`. Kept per level set (a server asks for the same few)."""
-        check_fitted(self, "serving_")
-        q = check_levels(levels)
-        key = q.tobytes()
-        tables = self.__dict__.setdefault("_tables", {})   # emptied by `fit`
-        table = tables.get(key)
-        if table is None:
+        def build(q: np.ndarray) -> np.ndarray:
             table = np.stack([g.radius(q) for g in self.groups_])
             table.setflags(write=False)
+            return table
+
+        return self._per_levels("radii", levels, build)
+
+    def _per_levels(self, kind: str, levels: Sequence[float], build: Any) -> Any:
+        """`build(q)` of the checked `levels`, kept per kind and level set (a server asks for
+        the same few; at most 64 each; emptied by `fit`)."""
+        check_fitted(self, "serving_")
+        q = check_levels(levels)
+        tables = self.__dict__.setdefault("_tables", {}).setdefault(kind, {})
+        hit = tables.get(q.tobytes())
+        if hit is None:
+            hit = build(q)
             if len(tables) < 64:
-                tables[key] = table
-        return table
+                tables[q.tobytes()] = hit
+        return hit
 
     def radius(self, level: float, classes: np.ndarray, distances: np.ndarray) -> np.ndarray:
         """Radii `[N]` at one `level` in (0, 1)."""
