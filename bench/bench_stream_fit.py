@@ -8,10 +8,14 @@ covariances) is fit by `fit_profile_stream` in a child process run under `/usr/b
 processes; its profile must equal the streamed one to 1e-6 in T and every k). Options:
 the thesis methods (`calibration=0`), the defaults otherwise; with `--conformal`, one
 temperature and everything else as the defaults (a calibration part, depth or shrinkage
-chosen on it, conformal regions with cell and tail floors), section `stream-fit conformal`.
+chosen on it, conformal regions with cell and tail floors), section `stream-fit conformal`;
+with `--defaults`, the default options through the command line itself (`detcal fit DIR`,
+`detcal fit DIR --dask local:2`: score candidates and κ, covariance and regions chosen on the
+calibration part), section `stream-fit defaults`.
 
     .venv/bin/python -m bench.bench_stream_fit                       # 20M, ~15 min
     .venv/bin/python -m bench.bench_stream_fit --conformal           # 20M, ~15 min
+    .venv/bin/python -m bench.bench_stream_fit --defaults            # 20M, ~20 min
     .venv/bin/python -m bench.bench_stream_fit --detections 1000000 --no-write
 
 The dataset is written under runs/ (gitignored) and deleted afterwards unless --keep.
@@ -79,14 +83,19 @@ def child_fit(path: str, out: str, dask: str | None, options: dict) -> None:
     Path(out).write_text(json.dumps({"seconds": seconds, "profile": profile.to_dict()}))
 
 
-def run_child(path: Path, out: Path, dask: str | None, options: dict
+def run_child(path: Path, out: Path, dask: str | None, options: dict | None
               ) -> tuple[dict, float, float | None, str]:
-    """Run `child_fit` in a child process under /usr/bin/time -v: (result, wall s, peak RSS
-    in GB or None, how RSS was measured)."""
-    cmd = [sys.executable, "-m", "bench.bench_stream_fit", "--child", str(path), str(out),
-           "--child-options", json.dumps(options)]
-    if dask:
-        cmd += ["--child-dask", dask]
+    """Run `child_fit` (options None: `detcal fit` with its defaults) in a child process
+    under /usr/bin/time -v: (result, wall s, peak RSS in GB or None, how RSS was measured)."""
+    if options is None:
+        cli = Path(sys.executable).parent / "detcal"
+        cmd = [str(cli), "fit", str(path), "--out", str(out.with_suffix(".profile.json")),
+               "--quiet"] + (["--dask", dask] if dask else [])
+    else:
+        cmd = [sys.executable, "-m", "bench.bench_stream_fit", "--child", str(path), str(out),
+               "--child-options", json.dumps(options)]
+        if dask:
+            cmd += ["--child-dask", dask]
     start = time.perf_counter()
     if Path("/usr/bin/time").exists():
         done = subprocess.run(["/usr/bin/time", "-v", *cmd], cwd=ROOT, capture_output=True,
@@ -102,7 +111,11 @@ def run_child(path: Path, out: Path, dask: str | None, options: dict
         rss = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024**2
     if done.returncode != 0:
         raise SystemExit(f"fit failed:\n{done.stderr[-3000:]}")
-    return json.loads(out.read_text()), time.perf_counter() - start, rss, how
+    wall = time.perf_counter() - start
+    if options is None:   # the command's own wall time, cluster start included
+        profile = json.loads(out.with_suffix(".profile.json").read_text())
+        return {"seconds": wall, "profile": profile}, wall, rss, how
+    return json.loads(out.read_text()), wall, rss, how
 
 
 def max_rel(a: dict, b: dict) -> float:
@@ -117,7 +130,8 @@ def table(n: int, gen_s: float, disk_gb: float, parts: int, streamed: dict, s_wa
           options: dict) -> str:
     p = streamed["profile"]
     scaling = (p.get("covariance_scaling") or {}).get("method", "depth")
-    stages = (f"temperature, {scaling} chosen on the calibration part, conformal regions fit on "
+    score = (p.get("score_calibration") or {}).get("method", "temperature")
+    stages = (f"{score}, {scaling} chosen on the calibration part, conformal regions fit on "
               f"{p['provenance']['n_calibration_frames']:,} calibration frames; with "
               f"shrinkage the k below are those of s·Σ + k·d·I, not the generating k"
               if (p.get("regions") or {}).get("method") == "conformal"
@@ -161,11 +175,13 @@ def main(argv: list[str] | None = None) -> None:
     parser.add_argument("--child-options", help=argparse.SUPPRESS)
     parser.add_argument("--conformal", action="store_true",
                         help="one temperature, the other stages as the defaults")
+    parser.add_argument("--defaults", action="store_true",
+                        help="`detcal fit DIR` with the default options")
     args = parser.parse_args(argv)
     if args.child:
         child_fit(*args.child, args.child_dask, json.loads(args.child_options))
         return
-    options = CONFORMAL if args.conformal else OPTIONS
+    options = None if args.defaults else CONFORMAL if args.conformal else OPTIONS
 
     path = Path(args.dir) / "dataset"
     try:
@@ -192,14 +208,30 @@ def main(argv: list[str] | None = None) -> None:
     finally:
         if not args.keep:
             shutil.rmtree(path, ignore_errors=True)
-    markdown = table(n, gen_s, disk, parts, streamed, s_wall, rss, how, dask, d_wall, options)
-    if args.conformal:
+    markdown = table(n, gen_s, disk, parts, streamed, s_wall, rss, how, dask, d_wall,
+                     options if options is not None else {})
+    if options is not CONFORMAL and options is not OPTIONS:
+        markdown += "\n\n" + scores_line(streamed["profile"], dask)
+    if options is not OPTIONS:
         markdown += "\n\n" + regions_line(streamed["profile"], dask)
     print(markdown)
     if not args.no_write:
         from bench._report import write_section
 
-        write_section("stream-fit conformal" if args.conformal else "stream-fit", markdown)
+        section = {id(OPTIONS): "stream-fit", id(CONFORMAL): "stream-fit conformal"}
+        write_section(section.get(id(options), "stream-fit defaults"), markdown)
+
+
+def scores_line(p: dict, dask: dict | None) -> str:
+    """The score method the defaults chose, each candidate's held-out NLL, κ, and whether
+    the Dask fit's score calibration equals the streamed one."""
+    sel = p["report"]["selection"]["score"]
+    cands = ", ".join(f"{k} {v['nll']:.5f}" for k, v in sel["candidates"].items())
+    same = "n/a" if dask is None else str(dask["profile"]["score_calibration"]
+                                          == p["score_calibration"])
+    return (f"Score stage: {sel['chosen']} chosen (held-out NLL on the calibration part: "
+            f"{cands}), shrinkage κ = {sel['shrink']:g}; Dask's score calibration equals the "
+            f"streamed one: {same}.")
 
 
 def regions_line(p: dict, dask: dict | None) -> str:

@@ -163,7 +163,7 @@ def _dataset(store: Store, root: Path | None, name: str, options: FitOptions,
     ds = open_dataset(root, name, max_part_detections)
     empty = load_upload(ds.empty_dump, "dataset")
     try:
-        check_stream_options(options)
+        check_stream_options(options, score_mode=ds.score_mode)
     except OptionError as exc:
         raise RequestError(["body", exc.field], str(exc)) from None
     return store.put_dump(io.BytesIO(dataset_reference(name)), DATASET_KIND), empty

@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from calibrators.core.checks import as_float_array, check_length, check_probabilities
+from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
 
 
@@ -62,15 +63,30 @@ def bin_index(values: np.ndarray, edges: np.ndarray) -> np.ndarray:
     return np.clip(idx, 0, len(edges) - 2)
 
 
-def calibration_bins(conf: np.ndarray, hit: np.ndarray, n_bins: int
+def calibration_bins(conf: np.ndarray, hit: np.ndarray, n_bins: int,
+                     weight: np.ndarray | None = None
                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Equal-width bins on [0, 1]: edges `[M+1]`, count `[M]`, sum of conf `[M]`, sum of hits."""
+    """Equal-width bins on [0, 1]: edges `[M+1]`, count `[M]`, sum of conf `[M]`, sum of hits
+    (each row counted `weight [N]` times when given: the counts are then weighted sums)."""
     edges = np.linspace(0.0, 1.0, n_bins + 1)
     idx = bin_index(conf, edges)
-    count = np.bincount(idx, minlength=n_bins)
+    h = hit.astype(np.float64)
+    if weight is not None:
+        conf, h = conf * weight, h * weight
+    count = np.bincount(idx, weights=weight, minlength=n_bins)
     conf_sum = np.bincount(idx, weights=conf, minlength=n_bins)
-    hit_sum = np.bincount(idx, weights=hit.astype(np.float64), minlength=n_bins)
+    hit_sum = np.bincount(idx, weights=h, minlength=n_bins)
     return edges, count, conf_sum, hit_sum
+
+
+def check_weights(weight: object, n: int, other: str = "confidences") -> np.ndarray:
+    """Row weights `[n]` (as many as `other`): finite float64 >= 0 with a positive sum;
+    FieldError naming `sample_weight` otherwise."""
+    w = as_float_array("sample_weight", weight, ndim=1)
+    check_length("sample_weight", w, n, other)
+    if (w < 0).any() or not w.sum() > 0:
+        raise FieldError("sample_weight", "sample_weight must be >= 0 with a positive sum")
+    return w
 
 
 class ResultMixin:

@@ -21,6 +21,8 @@ import numpy as np
 from calibrators.covariance import BinSums, fit_inputs, near_zero_q, raw_covariances
 from calibrators.data import Dump, select_detections
 from calibrators.evaluation import MatchResult, match_dump, tp_residuals, ts_labels, ts_logits
+from calibrators.fit._score_stage import score_table
+from calibrators.fit._stream_scores import ScoreTables
 from calibrators.io.parquet import ParquetDataset
 from calibrators.scores import SigmoidBins, SoftmaxSums, row_max
 
@@ -31,7 +33,10 @@ class Chunk:
     frames, the part's `frame_ids` / `ego` rows, matching `threshold`, `min_score`,
     `modulation`, regression `dims`, `offset`, the index of the part's first fit detection
     among all fit detections (set after the first pass), and `calib [frames of the part]`,
-    the frames of the calibration part (None: no calibration part)."""
+    the frames of the calibration part (None: no calibration part), and `score_table`:
+    whether the first pass tabulates the labelled logits for per-class score calibrators
+    (`""`: no; `"exact"`: the rows themselves; `"grid"`: the counts of `ScoreTable`'s cells).
+    """
 
     dataset: ParquetDataset
     index: int
@@ -44,6 +49,7 @@ class Chunk:
     dims: tuple[str, ...]
     offset: int = 0
     calib: np.ndarray | None = None
+    score_table: str = ""
 
 
 @dataclass(frozen=True)
@@ -55,7 +61,10 @@ class FirstPass:
     every fit row, in the smallest integer type, so that the passes of the softmax search
     read logits alone), the depth-scaling `BinSums` of the (training part's) true positives
     per covariance source (groups = class index) with their `near_zero_q` sums `[C]` (the
-    shrinkage fit's), and the calibration part's true positives."""
+    shrinkage fit's), the calibration part's true positives, and with `Chunk.score_table`
+    the `ScoreTable`s of the training and calibration parts' detections (`scores`) and the
+    training part's own temperature statistics (`sigmoid_train`, sigmoid with a calibration
+    part: the global temperature candidate is fit on them)."""
 
     n_detections: int
     n_ground_truth: int
@@ -68,6 +77,8 @@ class FirstPass:
     bins: dict[str, BinSums]
     calib: CalibrationTPs | None = None
     near_q: dict[str, np.ndarray] | None = None
+    scores: ScoreTables | None = None
+    sigmoid_train: SigmoidBins | tuple[np.ndarray, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -103,8 +114,11 @@ def prepare(chunk: Chunk) -> tuple[Dump, Dump, MatchResult]:
 
 def sigmoid_range(chunk: Chunk) -> tuple[int, float, float]:
     """`(fit rows, min, max)` of the part's predicted (sigmoid) logits, from its logits alone
-    (no matching): the grid of the `SigmoidBins` the first pass fills."""
+    (no matching): the grid of the `SigmoidBins` the first pass fills (softmax: the fit rows
+    alone, min and max infinite)."""
     fit = _fit_frames(_work(chunk, logits_only=True), chunk.held)
+    if fit.score_mode != "sigmoid":
+        return fit.n_detections, np.inf, -np.inf
     s = row_max(ts_logits(fit, chunk.modulation))
     if not len(s):
         return 0, np.inf, -np.inf
@@ -119,12 +133,20 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
     tp = np.asarray(matched.tp, dtype=bool)
     sigmoid: SigmoidBins | tuple[np.ndarray, np.ndarray] | None = None
     labels = ts_labels(fit, tp)
+    row_calib = (None if chunk.calib is None   # [fit rows] in the calibration part
+                 else chunk.calib[~chunk.held][fit.det_frame])
+    sigmoid_train = None
     if fit.score_mode == "sigmoid":
         s = row_max(ts_logits(fit, chunk.modulation))
         sigmoid = (s, labels) if span is None else SigmoidBins.from_logits(s, labels, span=span)
+        if chunk.score_table and row_calib is not None:
+            s, y = s[~row_calib], labels[~row_calib]
+            sigmoid_train = (s, y) if span is None else SigmoidBins.from_logits(s, y,
+                                                                                span=span)
+    scores = None if not chunk.score_table else _score_tables(fit, tp, row_calib, chunk)
     bins, raw, near_q = {}, {}, {}
-    in_calib = (np.zeros(int(tp.sum()), dtype=bool) if chunk.calib is None   # [TPs]
-                else chunk.calib[~chunk.held][fit.det_frame][tp])
+    in_calib = (np.zeros(int(tp.sum()), dtype=bool) if row_calib is None   # [TPs]
+                else row_calib[tp])
     train = ~in_calib   # of the true positives: their depth terms fit k
     res, codes = tp_residuals(fit, matched, chunk.dims), fit.det_labels[tp]
     for source in sources:
@@ -152,7 +174,18 @@ def first_pass(chunk: Chunk, sources: tuple[str, ...],
         if fit.score_mode == "softmax" else None,
         bins=bins, calib=None if chunk.calib is None else CalibrationTPs(
             res[in_calib], raw, fit.det_distance[tp][in_calib], codes[in_calib]),
-        near_q=near_q)
+        near_q=near_q, scores=scores, sigmoid_train=sigmoid_train)
+
+
+def _score_tables(fit: Dump, tp: np.ndarray, row_calib: np.ndarray | None, chunk: Chunk
+                  ) -> ScoreTables:
+    """The `ScoreTable`s of the part's training and calibration rows (None: no calibration
+    part), as the in-memory score stage tabulates them."""
+    exact = chunk.score_table == "exact"
+    if row_calib is None:
+        return ScoreTables(score_table(fit, tp, chunk.modulation, exact), None)
+    return ScoreTables(score_table(fit, tp, chunk.modulation, exact, ~row_calib),
+                       score_table(fit, tp, chunk.modulation, exact, row_calib))
 
 
 def _softmax_logits(chunk: Chunk) -> np.ndarray:

@@ -69,7 +69,17 @@ class Mapper:
         self.client = client
 
     def map(self, fn: Callable[..., Any], *items: Iterable[Any], **kwargs: Any) -> list[Any]:
+        return list(self.imap(fn, *items, **kwargs))
+
+    def imap(self, fn: Callable[..., Any], *items: Iterable[Any], **kwargs: Any
+             ) -> Iterator[Any]:
+        """The results one at a time, in order, so the caller can reduce each as it comes
+        (on a cluster the parts still run at once; each result is fetched when reached)."""
         if self.client is None:
-            return [fn(*args, **kwargs) for args in zip(*items, strict=True)]
+            for args in zip(*items, strict=True):
+                yield fn(*args, **kwargs)
+            return
         futures = self.client.map(fn, *items, pure=False, **kwargs)
-        return self.client.gather(futures)
+        for future in futures:
+            yield future.result()
+            future.release()

@@ -13,6 +13,7 @@ changes.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -24,9 +25,16 @@ from calibrators.core.json_safe import to_jsonable
 from calibrators.core.vocab import SCORE_METHODS
 from calibrators.data import Dump
 from calibrators.evaluation import ts_labels, ts_logits
-from calibrators.scores import TemperatureScaler, label_logit, make_score_calibrator
+from calibrators.scores import (
+    ScoreRows,
+    ScoreTable,
+    TemperatureScaler,
+    label_logit,
+    make_score_calibrator,
+)
 
-__all__ = ["SHRINK_GRID", "ScoreFit", "fit_score_stage"]
+__all__ = ["SHRINK_GRID", "ScoreFit", "candidate_names", "choose_score_method",
+           "fit_classwise", "fit_score_stage", "score_fit", "score_table"]
 
 #: The shrinkage strengths κ (pseudo-counts of true positives) a fit chooses among.
 SHRINK_GRID = (0.0, 10.0, 30.0, 100.0, 300.0, 1000.0)
@@ -62,67 +70,112 @@ def fit_score_stage(full: Dump, full_tp: np.ndarray, train: Dump, train_tp: np.n
     `full` is the whole fit part, `train` and `calib` its frames split in two (calib None:
     no calibration part); `*_tp [N]` their TP masks.
     """
-    names = list(SCORE_METHODS) if method == "auto" else [method]
-    if method == "auto" and calib is None:
-        names = ["temperature"]   # nothing to choose on: the thesis method
+    held = calib is not None and calib_tp is not None
+    names = candidate_names(method, held)
+    on_train = score_table(train, train_tp, modulation)
+    on_calib = score_table(calib, calib_tp, modulation) if held else None
+
+    def temperature_p() -> np.ndarray:
+        fitted = _fit_temperature(train, train_tp, modulation)
+        return expit(label_logit(ts_logits(calib, modulation) / fitted.temperature_,
+                                 calib.det_labels, calib.score_mode))
+
+    chosen, candidates, kappa, kappas = choose_score_method(
+        names, on_train, on_calib, temperature_p, min_samples, shrink)
+    temperature = _fit_temperature(full, full_tp, modulation)
+    fitted = None if chosen == "temperature" else fit_classwise(
+        chosen, score_table(full, full_tp, modulation), min_samples, kappa)
+    return score_fit(chosen, float(temperature.temperature_), fitted, candidates, kappa, kappas)
+
+
+def candidate_names(method: str, held: bool) -> list[str]:
+    """The score methods a fit with `method` tries (`held`: it has a calibration part)."""
+    if method != "auto":
+        return [method]
+    return list(SCORE_METHODS) if held else ["temperature"]   # nothing to choose on
+
+
+def choose_score_method(names: list[str], train: ScoreTable, calib: ScoreTable | None,
+                        temperature_p: Callable[[], np.ndarray], min_samples: int,
+                        shrink: float | None) -> tuple[str, dict[str, dict[str, float]],
+                                                       float, dict[float, float]]:
+    """`(method, each candidate's held-out {"nll", "ece"}, κ, each κ's held-out NLL)`:
+    every candidate of `names` fit on the training part's table and scored on the
+    calibration part's (`temperature_p()`: the global temperature's probabilities of the
+    calibration rows, in `calib.rows()` order), then κ chosen the same way when `shrink` is
+    None (module docstring)."""
     candidates: dict[str, dict[str, float]] = {}
     on_train: dict[str, Any] = {}
-    held = calib is not None and calib_tp is not None
-    if held and len(names) > 1:
-        target = np.asarray(calib_tp, dtype=bool)
+    rows = None if calib is None else calib.rows()
+    if rows is not None and len(names) > 1:
         for name in names:
-            on_train[name] = fitted = _fit(name, train, train_tp, modulation, min_samples)
-            p = _predict(fitted, name, calib, modulation)
-            candidates[name] = {"nll": metrics.classification_nll(p, target),
-                                "ece": metrics.expected_calibration_error(p, target)}
+            if name == "temperature":
+                p = temperature_p()
+            else:
+                on_train[name] = fitted = fit_classwise(name, train, min_samples)
+                p = _transform(fitted, rows)
+            candidates[name] = {
+                "nll": metrics.classification_nll(p, rows.hit, sample_weight=rows.weight),
+                "ece": metrics.expected_calibration_error(p, rows.hit,
+                                                          sample_weight=rows.weight)}
         chosen = min(candidates, key=lambda n: candidates[n]["nll"])
     else:
         chosen = names[0]
-    kappas: dict[str, float] = {}
-    if shrink is None and held and chosen != "temperature":
-        fitted = on_train.get(chosen) or _fit(chosen, train, train_tp, modulation, min_samples)
-        kappas = _shrink_nll(fitted, chosen, calib, np.asarray(calib_tp, dtype=bool),
-                             modulation)
+    kappas: dict[float, float] = {}
+    if shrink is None and rows is not None and chosen != "temperature":
+        fitted = on_train.get(chosen) or fit_classwise(chosen, train, min_samples)
+        kappas = _shrink_nll(fitted, rows)
         shrink = min(kappas, key=lambda k: (kappas[k], float(k)))
-    kappa = float(shrink or 0.0)
-    fitted = _fit(chosen, full, full_tp, modulation, min_samples, kappa)
-    temperature = fitted if chosen == "temperature" else _fit("temperature", full, full_tp,
-                                                              modulation, min_samples)
-    return ScoreFit(method=chosen, temperature=float(temperature.temperature_),
-                    params=None if chosen == "temperature" else fitted.to_dict(),
-                    candidates=candidates, shrink=0.0 if chosen == "temperature" else kappa,
+    return chosen, candidates, float(shrink or 0.0), kappas
+
+
+def score_fit(method: str, temperature: float, fitted: Any,
+              candidates: dict[str, dict[str, float]], kappa: float,
+              kappas: dict[float, float]) -> ScoreFit:
+    """The `ScoreFit` of a chosen `method` (`fitted` its calibrator, None for temperature)."""
+    return ScoreFit(method=method, temperature=temperature,
+                    params=None if fitted is None else fitted.to_dict(),
+                    candidates=candidates, shrink=0.0 if method == "temperature" else kappa,
                     shrink_candidates={str(k): v for k, v in kappas.items()})
 
 
-def _shrink_nll(fitted: Any, name: str, calib: Dump, target: np.ndarray, modulation: bool
-                ) -> dict[float, float]:
+def score_table(dump: Dump, tp: np.ndarray, modulation: bool, exact: bool = True,
+                rows: np.ndarray | None = None) -> ScoreTable:
+    """The `ScoreTable` of a dump's detections (those where `rows [N]`, when given): their
+    labelled logit (of the temperature-scaling logits), class, outcome `tp [N]` and
+    distance."""
+    z = label_logit(ts_logits(dump, modulation), dump.det_labels, dump.score_mode)
+    columns = (z, dump.det_labels, np.asarray(tp, dtype=bool), dump.det_distance)
+    if rows is not None:
+        columns = tuple(c[rows] for c in columns)
+    return ScoreTable.build(*columns, len(dump.classes), exact=exact)
+
+
+def fit_classwise(name: str, table: ScoreTable, min_samples: int, shrink: float = 0.0) -> Any:
+    """The per-class calibrator `name` fit on a table's rows (weighted by their counts)."""
+    rows = table.rows()
+    return make_score_calibrator(name, min_samples=min_samples, shrink=shrink).fit(
+        rows.z, rows.labels, rows.hit, table.n_classes, distances=rows.distances,
+        sample_weight=rows.weight)
+
+
+def _shrink_nll(fitted: Any, rows: ScoreRows) -> dict[float, float]:
     """Held-out NLL of a per-class calibrator fit on the training part, served with each κ of
     `SHRINK_GRID` (the class weights depend on κ alone: no refit)."""
     out = {}
     for kappa in SHRINK_GRID:
         fitted.shrink = kappa
-        out[kappa] = metrics.classification_nll(_predict(fitted, name, calib, modulation),
-                                                target)
+        out[kappa] = metrics.classification_nll(_transform(fitted, rows), rows.hit,
+                                                sample_weight=rows.weight)
     fitted.shrink = 0.0
     return out
 
 
-def _fit(name: str, dump: Dump, tp: np.ndarray, modulation: bool, min_samples: int,
-         shrink: float = 0.0) -> Any:
-    if name == "temperature":
-        return TemperatureScaler(mode=dump.score_mode).fit(ts_logits(dump, modulation),
-                                                           ts_labels(dump, tp))
-    z = label_logit(ts_logits(dump, modulation), dump.det_labels, dump.score_mode)
-    return make_score_calibrator(name, min_samples=min_samples, shrink=shrink).fit(
-        z, dump.det_labels, np.asarray(tp, dtype=bool), len(dump.classes),
-        distances=dump.det_distance)
+def _transform(fitted: Any, rows: ScoreRows) -> np.ndarray:
+    """`[K]` calibrated probability of each row."""
+    return fitted.transform(rows.z, rows.labels, distances=rows.distances)
 
 
-def _predict(fitted: Any, name: str, dump: Dump, modulation: bool) -> np.ndarray:
-    """`[N]` calibrated probability of each detection's label."""
-    logits = ts_logits(dump, modulation)
-    if name == "temperature":
-        z = label_logit(logits / fitted.temperature_, dump.det_labels, dump.score_mode)
-        return expit(z)
-    z = label_logit(logits, dump.det_labels, dump.score_mode)
-    return fitted.transform(z, dump.det_labels, distances=dump.det_distance)
+def _fit_temperature(dump: Dump, tp: np.ndarray, modulation: bool) -> TemperatureScaler:
+    return TemperatureScaler(mode=dump.score_mode).fit(ts_logits(dump, modulation),
+                                                       ts_labels(dump, tp))

@@ -5,8 +5,9 @@
 options)` gives, T and every k to 1e-6 relative, holding one part of the dataset at a time:
 
 1. the hold-out frames are drawn as `fit_profile` draws them (`held_out_frames`, same seed);
-2. sigmoid only, a light pass over the logits alone: the fit rows and the range of the
-   predicted logits, the grid `TemperatureScaler` bins them on;
+2. a light pass over the logits alone: the fit rows (whether score tables hold rows or
+   cells) and, sigmoid, the range of the predicted logits, the grid `TemperatureScaler` bins
+   them on;
 3. first pass, per part (`stream_chunks.first_pass`): the `min_score` filter, matching of the
    part's fit frames, row counts, the `SigmoidBins` of the predicted logits on that grid
    (small fits: the logits themselves), and the depth-scaling `BinSums` of the true
@@ -30,9 +31,12 @@ options)` gives, T and every k to 1e-6 relative, holding one part of the dataset
    sample of at most `report_detections` detections of whole fit (and held-out) frames,
    all of them when they fit (the report then equals the in-memory one), and says so.
 
-What needs all the data at once is refused with an `OptionError` naming the option
-(`check_stream_options`): choosing among `auto` score candidates on a calibration part and
-per-class score calibrators.
+The per-class score calibrators and the choice among score candidates (`_stream_scores`)
+are fit on the `ScoreTable`s the first pass returns for the training and calibration parts
+(summed as they arrive, then dropped): the rows themselves up to `EXACT_ROWS` fit detections
+(the in-memory stage), cell counts above. `check_stream_options` refuses with an
+`OptionError` naming the option the one combination without a per-part statistic:
+`score_method='auto'` on softmax scores with a calibration part.
 """
 
 from __future__ import annotations
@@ -75,7 +79,8 @@ from calibrators.fit._region_stage import (
     CovarianceFit,
     RegionFit,
 )
-from calibrators.fit._score_stage import ScoreFit
+from calibrators.fit._score_stage import ScoreFit, candidate_names
+from calibrators.fit._stream_scores import ScoreTables, stream_scores
 from calibrators.fit._stream_stages import (
     calibration_frames,
     stream_covariance,
@@ -84,6 +89,7 @@ from calibrators.fit._stream_stages import (
 from calibrators.io.parquet import ParquetDataset, open_parquet
 from calibrators.profile import CalibrationProfile, make_provenance
 from calibrators.scores import (
+    EXACT_ROWS,
     SIGMOID_BINS,
     SUBSAMPLE_MIN,
     SigmoidBins,
@@ -100,22 +106,20 @@ REPORT_DETECTIONS = 500_000
 Progress = Callable[[str, float], None]
 
 
-def check_stream_options(options: FitOptions, n_fit_frames: int | None = None) -> None:
+def check_stream_options(options: FitOptions, n_fit_frames: int | None = None,
+                         score_mode: str | None = None) -> None:
     """Raise `OptionError` naming the option when a streamed fit cannot give what
-    `fit_profile` gives with `options`: anything but temperature, depth and gaussian or
-    conformal regions (`auto` means temperature and depth when there is no calibration part:
-    `calibration=0`, or fewer than 2 fit frames, `n_fit_frames`)."""
+    `fit_profile` gives with `options` on a dataset of `score_mode` (None: not known yet):
+    choosing `score_method='auto'` among candidates on softmax scores, where the global
+    temperature's candidate needs every row's softmax at the training part's T (`auto` with
+    no calibration part, `calibration=0` or fewer than 2 fit frames, `n_fit_frames`, means
+    the temperature alone)."""
     no_calibration = options.calibration <= 0 or (n_fit_frames is not None and n_fit_frames < 2)
-    for name, thesis in (("score_method", "temperature"),):
-        value = getattr(options, name)
-        if value == thesis or (value == "auto" and no_calibration):
-            continue
-        why = ("chooses among candidates on a calibration part, each fit on all of the "
-               "training part at once" if value == "auto" else
-               "needs all the data at once (no finite per-chunk statistic)")
-        raise OptionError(name, f"the streamed fit cannot reproduce {name}={value!r}: it "
-                                f"{why}; use {name}={thesis!r}" +
-                          (" or calibration=0" if value == "auto" else ""))
+    if options.score_method == "auto" and score_mode == "softmax" and not no_calibration:
+        raise OptionError("score_method", "the streamed fit cannot reproduce "
+                          "score_method='auto' on softmax scores: its temperature candidate "
+                          "is fit on the training part alone, one pass over the data per "
+                          "step; name a score method (e.g. 'platt') or use calibration=0")
 
 
 def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: Any = None,
@@ -135,20 +139,24 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     empty = ds.empty_dump()
     source = check_fit_input(empty, opts)
     held = held_out_frames(ds.frames()[0], opts.holdout, opts.seed)
-    check_stream_options(opts, ds.n_frames - int(held.sum()))
+    check_stream_options(opts, ds.n_frames - int(held.sum()), ds.score_mode)
+    report_progress("prepare", 0.0)
     calib = calibration_frames(ds.frames()[0], held, opts)
     sources = (source, *_other_sources(empty, source, opts))
     mapper = Mapper(client)
 
     report_progress("match", 0.1)
-    chunks, firsts, n_fit, n_tp = _first_passes(ds, held, calib, opts, sources, mapper)
+    chunks, firsts, n_fit, n_tp, tables = _first_passes(ds, held, calib, opts, sources, mapper)
 
     report_progress("scores", 0.25)
     temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper)
+    scores = ScoreFit(method="temperature", temperature=temperature, params=None)
+    if tables is not None:
+        scores = stream_scores(opts, tables, temperature, lambda: _train_temperature(
+            ds, opts, firsts))
     report_progress("covariance", 0.4)
     tps = None if calib is None else [f.calib for f in firsts]
     covs = {s: stream_covariance(ds.classes, s, firsts, tps, opts) for s in sources}
-    scores = ScoreFit(method="temperature", temperature=temperature, params=None)
     report_progress("regions", 0.5)
     regions = stream_regions(ds.classes, opts, covs, tps)
     provenance = make_provenance(
@@ -162,32 +170,44 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
 
     report_progress("report", 0.6)
     report = _report(profile, opts, chunks, firsts, held, report_detections, mapper,
-                     selection_of(scores, covs[source], regions[source], tuple(ds.classes)))
+                     selection_of(scores, covs[source], regions[source], tuple(ds.classes)),
+                     report_progress)
     report_progress("done", 1.0)
     return replace(profile, report=report)
 
 
-def _sigmoid_span(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper
-                  ) -> tuple[float, float] | None:
-    """The range of the predicted logits the sigmoid bins span, from the logits alone; None
-    for softmax or when the fit rows are few enough to keep (module docstring, step 2)."""
-    if ds.score_mode != "sigmoid":
-        return None
+def _light_pass(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper
+                ) -> tuple[int, tuple[float, float] | None]:
+    """The fit rows, from the logits alone, and the range of the predicted logits the
+    sigmoid bins span (None for softmax or when the fit rows are few enough to keep: module
+    docstring, step 2)."""
     ranges = mapper.map(sigmoid_range, chunks)
-    if sum(r[0] for r in ranges) > SIGMOID_BINS:
-        return (min(r[1] for r in ranges), max(r[2] for r in ranges))
-    return None
+    n_rows = sum(r[0] for r in ranges)
+    if ds.score_mode == "sigmoid" and n_rows > SIGMOID_BINS:
+        return n_rows, (min(r[1] for r in ranges), max(r[2] for r in ranges))
+    return n_rows, None
 
 
 def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None,
                   opts: FitOptions, sources: tuple[str, ...], mapper: Mapper
-                  ) -> tuple[list[Chunk], list[FirstPass], int, int]:
+                  ) -> tuple[list[Chunk], list[FirstPass], int, int, ScoreTables | None]:
     """The parts (each with the offset of its first fit row), their first passes (module
-    docstring, step 3), the fit rows and the true positives; the ValueErrors of
-    `fit_profile` when nothing is left to fit on or nothing matched."""
+    docstring, step 3; their score tables summed as they come, then dropped), the fit rows,
+    the true positives and the summed score tables (None: no per-class score method to fit);
+    the ValueErrors of `fit_profile` when nothing is left to fit on or nothing matched."""
     chunks = _chunks(ds, held, calib, opts)
-    span = _sigmoid_span(ds, chunks, mapper)
-    firsts: list[FirstPass] = mapper.map(first_pass, chunks, sources=sources, span=span)
+    n_rows, span = _light_pass(ds, chunks, mapper)
+    per_class = candidate_names(opts.score_method, calib is not None) != ["temperature"]
+    if per_class:
+        mode = "exact" if n_rows <= EXACT_ROWS else "grid"
+        chunks = [replace(c, score_table=mode) for c in chunks]
+    firsts: list[FirstPass] = []
+    tables: ScoreTables | None = None
+    for first in mapper.imap(first_pass, chunks, sources=sources, span=span):
+        if first.scores is not None:
+            tables = first.scores if tables is None else tables + first.scores
+            first = replace(first, scores=None)
+        firsts.append(first)
     counts = np.array([f.n_fit_detections for f in firsts])
     if sum(int(f.fit_per_frame.sum() + f.held_per_frame.sum()) for f in firsts) == 0:
         raise ValueError(f"min_score={opts.min_score} leaves no detection to fit on")
@@ -197,7 +217,7 @@ def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None
                          f"(threshold); check the dump's coordinates and classes")
     offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
     chunks = [replace(c, offset=int(o)) for c, o in zip(chunks, offsets, strict=True)]
-    return chunks, firsts, int(counts.sum()), n_tp
+    return chunks, firsts, int(counts.sum()), n_tp, tables
 
 
 def _assembled(empty: Any, opts: FitOptions, scores: ScoreFit, covs: dict[str, CovarianceFit],
@@ -244,15 +264,9 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
                  firsts: list[FirstPass], n: int, mapper: Mapper) -> float:
     """T as `TemperatureScaler.fit` finds it on all fit rows (module docstring, step 3)."""
     scaler = TemperatureScaler(mode=ds.score_mode)
-    width = 1 if opts.modulation and ds.score_mode == "sigmoid" else ds.n_columns
+    width = _width(ds, opts)
     if ds.score_mode == "sigmoid":
-        if n > SIGMOID_BINS:
-            bins: SigmoidBins = reduce(add, (f.sigmoid for f in firsts))
-            scaler.fit_bins(bins, width)
-        else:
-            s, y = (np.concatenate([f.sigmoid[i] for f in firsts]) for i in (0, 1))
-            scaler.fit_objective(sigmoid_nll(s, y), n, width)
-        return float(scaler.temperature_)
+        return _sigmoid_temperature([f.sigmoid for f in firsts], width)
 
     labels = [f.softmax_labels for f in firsts]
 
@@ -273,9 +287,32 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
     return float(scaler.temperature_)
 
 
+def _train_temperature(ds: ParquetDataset, opts: FitOptions, firsts: list[FirstPass]
+                       ) -> float:
+    """The sigmoid T of the training part alone (the score stage's temperature candidate)."""
+    return _sigmoid_temperature([f.sigmoid_train for f in firsts], _width(ds, opts))
+
+
+def _sigmoid_temperature(stats: list[Any], width: int) -> float:
+    """The sigmoid T of the parts' `SigmoidBins` (summed) or predicted logits and labels."""
+    scaler = TemperatureScaler(mode="sigmoid")
+    if isinstance(stats[0], SigmoidBins):
+        bins: SigmoidBins = reduce(add, stats)
+        scaler.fit_bins(bins, width)
+    else:
+        s, y = (np.concatenate([part[i] for part in stats]) for i in (0, 1))
+        scaler.fit_objective(sigmoid_nll(s, y), len(s), width)
+    return float(scaler.temperature_)
+
+
+def _width(ds: ParquetDataset, opts: FitOptions) -> int:
+    """The columns the temperature is fit over (what `n_columns_` records)."""
+    return 1 if opts.modulation and ds.score_mode == "sigmoid" else ds.n_columns
+
+
 def _report(profile: CalibrationProfile, opts: FitOptions, chunks: list[Chunk],
             firsts: list[FirstPass], held: np.ndarray, budget: int, mapper: Mapper,
-            selection: dict[str, Any]) -> dict[str, Any]:
+            selection: dict[str, Any], report_progress: Progress) -> dict[str, Any]:
     """The profile's report on seeded samples of whole fit and held-out frames (module
     docstring, step 4); `sample` records what was summarised when not everything was."""
     fit_counts = np.concatenate([f.fit_per_frame for f in firsts])
@@ -286,6 +323,7 @@ def _report(profile: CalibrationProfile, opts: FitOptions, chunks: list[Chunk],
                             threshold=opts.threshold)
     held_summary, held_note = None, None
     if held.any():
+        report_progress("holdout report", 0.8)
         held_keep, held_note = _sample(held, held_counts, budget, rng)
         held_summary = summarize(_gather(chunks, held_keep, mapper), profile,
                                  threshold=opts.threshold)

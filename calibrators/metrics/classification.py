@@ -14,6 +14,7 @@ from calibrators.core.bins import (
     ResultMixin,
     calibration_bins,
     check_n_bins,
+    check_weights,
     confidences_and_correct,
 )
 
@@ -45,24 +46,27 @@ def reliability_diagram(confidences: np.ndarray, correct: np.ndarray, n_bins: in
     return ReliabilityDiagram(edges, mean_conf, acc, count.astype(np.int64))
 
 
-def _gaps(confidences: np.ndarray, correct: np.ndarray, n_bins: int
-          ) -> tuple[np.ndarray, np.ndarray]:
+def _gaps(confidences: np.ndarray, correct: np.ndarray, n_bins: int,
+          sample_weight: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """|acc - conf| `[M]` (0 for empty bins) and bin weights |B_m| / n `[M]`."""
     n_bins = check_n_bins("n_bins", n_bins)
     conf, hit = confidences_and_correct(confidences, correct)
-    _, count, conf_sum, hit_sum = calibration_bins(conf, hit, n_bins)
-    safe = np.maximum(count, 1)
+    w = None if sample_weight is None else check_weights(sample_weight, conf.shape[0])
+    _, count, conf_sum, hit_sum = calibration_bins(conf, hit, n_bins, w)
+    safe = np.where(count > 0, count, 1)
     gap = np.abs(hit_sum - conf_sum) / safe
-    return gap, count / conf.shape[0]
+    return gap, count / count.sum()
 
 
 def expected_calibration_error(confidences: np.ndarray, correct: np.ndarray,
-                               n_bins: int = 10) -> float:
-    """ECE = sum_m |B_m|/n · |acc(B_m) − conf(B_m)| over equal-width bins (Eq. 2-19).
+                               n_bins: int = 10, sample_weight: np.ndarray | None = None
+                               ) -> float:
+    """ECE = sum_m |B_m|/n · |acc(B_m) − conf(B_m)| over equal-width bins (Eq. 2-19), every
+    detection counted `sample_weight [N]` times (>= 0) when given.
 
     confidences: [N] in [0, 1]; correct: [N] bool or 0/1.
     """
-    gap, weight = _gaps(confidences, correct, n_bins)
+    gap, weight = _gaps(confidences, correct, n_bins, sample_weight)
     return float(np.sum(weight * gap))
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from calibrators.core.bins import as_binary, check_nonempty
+from calibrators.core.bins import as_binary, check_nonempty, check_weights
 from calibrators.core.checks import (
     as_float_array,
     as_int_array,
@@ -44,8 +44,10 @@ def _inputs(probabilities: object, labels: object
     return p, y, False
 
 
-def classification_nll(probabilities: np.ndarray, labels: np.ndarray) -> float:
-    """Mean negative log-likelihood of the labels (nats).
+def classification_nll(probabilities: np.ndarray, labels: np.ndarray,
+                       sample_weight: np.ndarray | None = None) -> float:
+    """Mean negative log-likelihood of the labels (nats), weighted by `sample_weight [N]`
+    (>= 0, e.g. the counts of a `ScoreTable`'s rows) when given.
 
     binary: −mean(y log p + (1 − y) log(1 − p)); multi-class: −mean log p[i, y_i].
     p is clipped to [EPS, 1 − EPS] with EPS = 1e-12.
@@ -53,8 +55,13 @@ def classification_nll(probabilities: np.ndarray, labels: np.ndarray) -> float:
     p, y, binary = _inputs(probabilities, labels)
     p = np.clip(p, EPS, 1.0 - EPS)
     if binary:
-        return float(-np.mean(y * np.log(p) + (1.0 - y) * np.log1p(-p)))
-    return float(-np.mean(np.log(p[np.arange(p.shape[0]), y])))
+        loss = y * np.log(p) + (1.0 - y) * np.log1p(-p)
+    else:
+        loss = np.log(p[np.arange(p.shape[0]), y])
+    if sample_weight is None:
+        return float(-np.mean(loss))
+    return float(-np.average(loss, weights=check_weights(sample_weight, p.shape[0],
+                                                                 "probabilities")))
 
 
 def brier_score(probabilities: np.ndarray, labels: np.ndarray) -> float:

@@ -11,7 +11,8 @@
 - per-class calibrators of the labelled class's logit (`_calibrator` the shared base,
   `_class_temperature`, `_platt`, `_isotonic`, `_histogram`, with the monotone knots of
   `_knots`; built by name and loaded back by `_registry`): `fit(z, labels, tp, distances)`,
-  `transform` -> P(true positive), strictly increasing in `z` within a class.
+  `transform` -> P(true positive), strictly increasing in `z` within a class; fit on the
+  mergeable counts of a `ScoreTable` (`_score_table`) when the data come in parts.
 """
 
 from calibrators.scores._calibrator import ClasswiseCalibrator
@@ -34,6 +35,13 @@ from calibrators.scores._registry import (
     make_score_calibrator,
     score_calibrator_from_dict,
 )
+from calibrators.scores._score_table import (
+    D_WIDTH,
+    EXACT_ROWS,
+    Z_WIDTH,
+    ScoreRows,
+    ScoreTable,
+)
 from calibrators.scores._temperature import (
     SUBSAMPLE_MIN,
     TemperatureScaler,
@@ -50,9 +58,11 @@ from calibrators.scores._temperature_nll import (
     softmax_nll,
 )
 
-__all__ = ["SCORE_CALIBRATION_METHODS", "SIGMOID_BINS", "SUBSAMPLE_MIN", "ClassTemperatureScaler",
-           "ClasswiseCalibrator", "HistogramBinning", "IsotonicCalibrator", "KnotCalibrator",
-           "PlattScaler", "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities",
+__all__ = ["D_WIDTH", "EXACT_ROWS", "SCORE_CALIBRATION_METHODS", "SIGMOID_BINS", "SUBSAMPLE_MIN",
+           "Z_WIDTH",
+           "ClassTemperatureScaler", "ClasswiseCalibrator", "HistogramBinning",
+           "IsotonicCalibrator", "KnotCalibrator", "PlattScaler", "ScoreRows", "ScoreTable",
+           "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities",
            "isotonic_knots", "label_logit", "label_scores", "make_score_calibrator",
            "modulate_logits", "monotone_knots", "predict", "probabilities_logits",
            "probability_logit", "row_max", "score_calibrator_from_dict", "sigmoid_nll",

@@ -2,7 +2,9 @@
 its pooled fallback, serving by class, and the plain-dict form a profile stores.
 
 A subclass names its `method`, its hyper-parameters (`_hyper`), and two small functions:
-`_fit_one(z [n], hit [n], d [n] | None) -> params` (a float64 array) and
+`_fit_one(z [n], hit [n], d [n] | None, w [n] | None) -> params` (a float64 array; `w` the
+rows' weights, None for unit weights, which every subclass fits exactly as before weights
+existed) and
 `_apply(params, z [m], d [m] | None) -> p [m]`, strictly increasing in `z` for fixed `d`.
 
 Shrinkage (`shrink` = κ >= 0, every calibrator's last hyper-parameter): a class with `n`
@@ -17,7 +19,7 @@ from typing import Any, ClassVar, Self, TypeVar
 
 import numpy as np
 
-from calibrators.core.bins import as_binary, check_n_bins, check_nonempty
+from calibrators.core.bins import as_binary, check_n_bins, check_nonempty, check_weights
 from calibrators.core.checks import (
     as_float_array,
     as_int_array,
@@ -56,7 +58,8 @@ class ClasswiseCalibrator:
     def _needs_distances(self) -> bool:
         return False
 
-    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None,
+                 w: np.ndarray | None) -> np.ndarray:
         raise NotImplementedError
 
     def _apply(self, params: np.ndarray, z: np.ndarray, d: np.ndarray | None) -> np.ndarray:
@@ -67,10 +70,13 @@ class ClasswiseCalibrator:
 
     # -- public API ----------------------------------------------------------------------------
     def fit(self, z: np.ndarray, labels: np.ndarray, tp: np.ndarray, n_classes: int,
-            distances: np.ndarray | None = None) -> Self:
+            distances: np.ndarray | None = None, sample_weight: np.ndarray | None = None
+            ) -> Self:
         """Fit on the labelled class's logit `z [N]`, `labels [N]` in [0, n_classes), `tp [N]`
         (bool or 0/1: the detection is a true positive) and optionally `distances [N]` (m,
-        >= 0; used only by a range term); returns self."""
+        >= 0; used only by a range term) and `sample_weight [N]` (>= 0: how many detections
+        a row stands for, e.g. the cells of a `ScoreTable`; counts are then weighted sums);
+        returns self."""
         min_samples = check_min_samples(self.min_samples)
         min_each = check_n_bins("min_each", self.min_each, minimum=1)
         check_shrink(self.shrink)
@@ -78,12 +84,16 @@ class ClasswiseCalibrator:
         c = check_n_bins("n_classes", n_classes, minimum=1)
         x, y, d = self._inputs(z, labels, distances, c)
         hit = as_binary("tp", tp, x.shape[0], "z")
+        w = None if sample_weight is None else check_weights(sample_weight, x.shape[0], "z")
+        if w is not None:   # rows of no weight take no part
+            x, y, hit, d, w = (None if a is None else a[w > 0] for a in (x, y, hit, d, w))
         if hit.all() or not hit.any():
             raise FieldError("tp", "tp must hold both true and false positives to fit a score "
                              f"calibrator, got {int(hit.sum())} of {hit.shape[0]} true")
-        pooled = self._fit_one(x, hit, d)
-        n_samples = np.bincount(y, minlength=c)
-        n_pos = np.bincount(y, weights=hit, minlength=c).astype(np.int64)
+        pooled = self._fit_one(x, hit, d, w)
+        n_samples = np.rint(np.bincount(y, weights=w, minlength=c)).astype(np.int64)
+        n_pos = np.rint(np.bincount(y, weights=hit if w is None else hit * w,
+                                    minlength=c)).astype(np.int64)
         params, fallback = [], []
         for k, rows in enumerate(_rows_by_class(y, c)):
             if (n_samples[k] < min_samples or n_pos[k] < min_each
@@ -91,10 +101,11 @@ class ClasswiseCalibrator:
                 fallback.append(k)
                 params.append(pooled)
             else:
-                params.append(self._fit_one(x[rows], hit[rows], None if d is None else d[rows]))
+                params.append(self._fit_one(x[rows], hit[rows], None if d is None else d[rows],
+                                            None if w is None else w[rows]))
         self.n_classes_, self.params_, self.pooled_params_ = c, params, pooled
         self.fallback_classes_ = fallback
-        self.n_samples_, self.n_positives_ = n_samples.astype(np.int64), n_pos
+        self.n_samples_, self.n_positives_ = n_samples, n_pos
         self._derive()
         return self
 

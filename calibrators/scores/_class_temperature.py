@@ -47,9 +47,19 @@ class ClassTemperatureScaler(ClasswiseCalibrator):
     def _check_hyper(self) -> None:
         check_bounds(self.bounds)
 
-    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None,
+                 w: np.ndarray | None) -> np.ndarray:
         scaler = TemperatureScaler(mode="sigmoid", bounds=self.bounds, xtol=self.xtol)
-        return np.array([scaler.fit(z[:, None], hit.astype(np.int64)).temperature_])
+        if w is None:
+            return np.array([scaler.fit(z[:, None], hit.astype(np.int64)).temperature_])
+        y, total = hit.astype(np.float64), float(w.sum())
+        linear = float(np.dot(w * y, z)) / total
+
+        def mean_nll(log_t: float) -> float:   # the weighted form of `sigmoid_nll`
+            return float(np.dot(w, np.logaddexp(0.0, z * np.exp(-log_t)))) / total \
+                - linear * float(np.exp(-log_t))
+
+        return np.array([scaler.fit_objective(mean_nll, len(z), 1).temperature_])
 
     def _apply(self, params: np.ndarray, z: np.ndarray, d: np.ndarray | None) -> np.ndarray:
         return expit(z / params[0])

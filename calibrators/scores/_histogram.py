@@ -52,15 +52,22 @@ class HistogramBinning(KnotCalibrator):
         _check_prior(self.prior)
         super()._check_hyper()
 
-    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None,
+                 w: np.ndarray | None) -> np.ndarray:
         n_bins = int(self.n_bins)
         alpha, beta = (float(v) for v in self.prior)
-        order = np.sort(z)
-        edges = np.unique(order[(np.arange(1, n_bins) * order.size) // n_bins])
+        if w is None:
+            order = np.sort(z)
+            edges = np.unique(order[(np.arange(1, n_bins) * order.size) // n_bins])
+        else:   # the same rule on the cumulative weight: unit weights give the edges above
+            order = np.argsort(z, kind="stable")
+            cum = np.cumsum(w[order])
+            at = np.searchsorted(cum, np.arange(1, n_bins) * cum[-1] / n_bins, side="right")
+            edges = np.unique(z[order[np.minimum(at, z.size - 1)]])
         idx = np.searchsorted(edges, z, side="right")
-        count = np.bincount(idx, minlength=edges.size + 1)
-        pos = np.bincount(idx, weights=hit, minlength=edges.size + 1)
-        z_sum = np.bincount(idx, weights=z, minlength=edges.size + 1)
+        count = np.bincount(idx, weights=w, minlength=edges.size + 1)
+        pos = np.bincount(idx, weights=hit if w is None else hit * w, minlength=edges.size + 1)
+        z_sum = np.bincount(idx, weights=z if w is None else z * w, minlength=edges.size + 1)
         used = count > 0
         count, pos, z_sum = count[used].astype(np.float64), pos[used], z_sum[used]
         freq = (pos + alpha) / (count + alpha + beta)

@@ -44,5 +44,6 @@ class IsotonicCalibrator(KnotCalibrator):
         check_n_bins("max_knots", self.max_knots, minimum=2)
         super()._check_hyper()
 
-    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None) -> np.ndarray:
-        return isotonic_knots(z, hit.astype(np.float64), int(self.max_knots))
+    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None,
+                 w: np.ndarray | None) -> np.ndarray:
+        return isotonic_knots(z, hit.astype(np.float64), int(self.max_knots), w)

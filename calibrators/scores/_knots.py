@@ -56,14 +56,20 @@ def serve(knots: np.ndarray, z: np.ndarray, eps: float, tie_break: float) -> np.
     return (1.0 - tie_break) * p + tie_break * expit(z)
 
 
-def isotonic_knots(z: np.ndarray, hit: np.ndarray, max_knots: int) -> np.ndarray:
-    """Knots `[2, K <= max_knots]` of the isotonic regression of `hit [N]` on `z [N]`.
+def isotonic_knots(z: np.ndarray, hit: np.ndarray, max_knots: int,
+                   weight: np.ndarray | None = None) -> np.ndarray:
+    """Knots `[2, K <= max_knots]` of the isotonic regression of `hit [N]` on `z [N]` (rows
+    weighted by `weight [N]` > 0 when given).
 
     Equal logits are pooled first (so a block boundary never splits a tie), then each
     isotonic block becomes one knot at its mean logit (`compact`).
     """
     ux, inverse, counts = np.unique(z, return_inverse=True, return_counts=True)
-    mean_hit = np.bincount(inverse.reshape(-1), weights=hit, minlength=ux.size) / counts
+    inverse = inverse.reshape(-1)
+    if weight is not None:
+        counts = np.bincount(inverse, weights=weight, minlength=ux.size)
+        hit = hit * weight
+    mean_hit = np.bincount(inverse, weights=hit, minlength=ux.size) / counts
     fit = isotonic_regression(mean_hit, weights=counts.astype(np.float64), increasing=True)
     return monotone_knots(ux, fit.x, counts, max_knots)
 

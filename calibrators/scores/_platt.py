@@ -64,12 +64,13 @@ class PlattScaler(ClasswiseCalibrator):
             raise FieldError("min_slope", "min_slope must be a number in (0, 1), got "
                                           f"{self.min_slope!r}")
 
-    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None) -> np.ndarray:
+    def _fit_one(self, z: np.ndarray, hit: np.ndarray, d: np.ndarray | None,
+                 w: np.ndarray | None) -> np.ndarray:
         cols = [z, np.ones_like(z)] + ([d] if self.range_term else [])
-        scale = np.array([_spread(c) for c in cols])
+        scale = np.array([_spread(c, w) for c in cols])
         scale[1] = 1.0
         problem = _Logistic([c / s for c, s in zip(cols, scale, strict=True)],
-                            hit.astype(np.float64), scale, float(self.l2))
+                            hit.astype(np.float64), scale, float(self.l2), w)
         theta = problem.newton(problem.prior * scale)
         low = float(self.min_slope) * scale[0]
         if theta[0] < low:  # convex: the bounded optimum has a on the bound
@@ -90,16 +91,18 @@ class PlattScaler(ClasswiseCalibrator):
 
 
 class _Logistic:
-    """Penalised logistic NLL `Σ softplus(η) - y·η + l2/2·|θ/scale - prior|²` with
-    `η = Σ_j θ_j·x_j` over unit-spread columns `x` (list of P arrays `[n]`), minimised by
-    Newton's method with backtracking (strictly convex for l2 > 0; P <= 3).
+    """Penalised logistic NLL `Σ w·(softplus(η) - y·η) + l2/2·|θ/scale - prior|²` with
+    `η = Σ_j θ_j·x_j` over unit-spread columns `x` (list of P arrays `[n]`) and row weights
+    `w [n]` (None: 1 each), minimised by Newton's method with backtracking (strictly convex
+    for l2 > 0; P <= 3).
 
     Columns are combined one by one with einsum: a BLAS matmul may start threads, which costs
     milliseconds per call on a busy machine."""
 
-    def __init__(self, x: list[np.ndarray], y: np.ndarray, scale: np.ndarray, l2: float
-                 ) -> None:
-        self.x, self.y, self.scale, self.l2 = x, y, scale, l2
+    def __init__(self, x: list[np.ndarray], y: np.ndarray, scale: np.ndarray, l2: float,
+                 w: np.ndarray | None = None) -> None:
+        self.x, self.y, self.scale, self.l2, self.w = x, y, scale, l2, w
+        self.wy = y if w is None else w * y
         self.prior = np.zeros(len(x))
         self.prior[0] = 1.0  # the identity: a = 1, b = 0, g = 0
 
@@ -108,7 +111,8 @@ class _Logistic:
         for j in range(1, len(self.x)):
             eta += theta[j] * self.x[j]
         gap = theta / self.scale - self.prior
-        nll = float(np.logaddexp(0.0, eta).sum()) - _dot(self.y, eta)
+        soft = np.logaddexp(0.0, eta)
+        nll = (float(soft.sum()) if self.w is None else _dot(self.w, soft)) - _dot(self.wy, eta)
         return nll + 0.5 * self.l2 * float(np.sum(gap * gap)), eta
 
     def newton(self, theta: np.ndarray, fixed: int = 0, max_iter: int = 100) -> np.ndarray:
@@ -119,8 +123,11 @@ class _Logistic:
         for _ in range(max_iter):
             p = expit(eta)
             w = p * (1.0 - p)
+            resid = p - self.y
+            if self.w is not None:
+                w, resid = w * self.w, resid * self.w
             gap = theta / self.scale - self.prior
-            grad = np.array([_dot(c, p - self.y) for c in self.x]) + self.l2 * gap / self.scale
+            grad = np.array([_dot(c, resid) for c in self.x]) + self.l2 * gap / self.scale
             hess = np.array([[_dot(w * a, b) for b in self.x] for a in self.x])
             hess += np.diag(self.l2 / self.scale**2)
             step = np.zeros_like(theta)
@@ -144,7 +151,12 @@ def _dot(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.einsum("i,i->", a, b))
 
 
-def _spread(col: np.ndarray) -> float:
-    """A positive scale of a column: its standard deviation, 1 when that is 0 or tiny."""
-    s = float(np.std(col))
+def _spread(col: np.ndarray, w: np.ndarray | None = None) -> float:
+    """A positive scale of a column: its (weighted) standard deviation, 1 when that is 0 or
+    tiny."""
+    if w is None:
+        s = float(np.std(col))
+    else:
+        mean = float(np.dot(w, col)) / float(w.sum())
+        s = float(np.sqrt(np.dot(w, (col - mean) ** 2) / float(w.sum())))
     return s if s > 1e-12 else 1.0

@@ -4,6 +4,7 @@ named, and options a streamed fit cannot reproduce are refused before a job is q
 
 from __future__ import annotations
 
+import json
 import os
 from collections.abc import Iterator
 
@@ -12,15 +13,18 @@ from fastapi.testclient import TestClient
 
 from app.main import create_app
 from app.settings import Settings
+from calibrators.data import synthetic_dump
 from calibrators.fit import fit_profile
 from calibrators.io import save_parquet
 from tests.app.conftest import ADMIN, TOKEN, wait_job
+from tests.calibrators.fit.test_fit_stream import assert_close_tree
 
 
 @pytest.fixture(scope="module")
 def datasets(tmp_path_factory, dump_given):
     root = tmp_path_factory.mktemp("datasets")
     save_parquet(root / "val", dump_given, rows_per_part=200)
+    save_parquet(root / "soft", synthetic_dump(n_frames=12, seed=4, score_mode="softmax"))
     outside = tmp_path_factory.mktemp("outside")
     save_parquet(outside / "secret", dump_given)
     os.symlink(outside / "secret", root / "escape")
@@ -81,10 +85,23 @@ def test_names_outside_the_datasets_folder_are_refused(client, name, words):
     assert detail["loc"] == ["body", "dataset"] and words in detail["msg"], detail
 
 
+def test_a_dataset_fit_with_default_options_serves_the_in_memory_scores(client, dump_given):
+    """The default fit, streamed: score candidates and κ chosen on the calibration part."""
+    r = _fit(client, dataset="val")
+    assert r.status_code == 202, r.text
+    job = wait_job(client, r.json()["job_id"])
+    assert job["state"] == "succeeded", job
+    served = client.get("/v1/profiles/streamed/1").json()["profile"]
+    memory = fit_profile(dump_given)
+    assert served["score_calibration"]["method"] == memory.score_method
+    assert_close_tree(served["score_calibration"], json.loads(memory.to_json())[
+        "score_calibration"], "score_calibration")
+
+
 def test_options_a_streamed_fit_cannot_reproduce_are_refused_before_queueing(client):
-    r = _fit(client, dataset="val")                      # default: auto with a calibration part
+    r = _fit(client, dataset="soft")                 # auto on softmax scores, with calibration
     assert r.status_code == 422, r.text
-    assert r.json()["detail"][0]["loc"][0] == "body"
+    assert r.json()["detail"][0]["loc"] == ["body", "score_method"]
     assert client.get("/v1/jobs", headers=ADMIN).json() == []
 
 

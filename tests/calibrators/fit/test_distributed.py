@@ -3,12 +3,14 @@ in-memory fit; Dask specs are checked before anything starts."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from calibrators.core.errors import FieldError
 from calibrators.data import synthetic_dump
 from calibrators.fit import Mapper, dask_client, fit_profile, fit_profile_stream, parse_dask_spec
 from calibrators.io import load_parquet, save_parquet
+from calibrators.profile import apply_profile
 
 pytest.importorskip("distributed")
 
@@ -49,19 +51,24 @@ def test_mapper_without_a_client_runs_here_in_order():
     assert Mapper().map(divmod, [7, 9], [2, 4]) == [(3, 1), (2, 1)]
 
 
-def test_dask_conformal_regions_equal_the_in_memory_ones(tmp_path):
-    """The calibration part's true positives gathered from two worker processes give the
-    radii the in-memory fit gives."""
+def test_dask_default_fit_equals_the_in_memory_one(tmp_path):
+    """With the default options (score candidates and κ chosen on the calibration part,
+    covariance `auto`, conformal regions), the score tables and calibration true positives
+    gathered from two worker processes give the profile the in-memory fit gives."""
     from tests.calibrators.fit.test_fit_stream import assert_close_tree
 
     dump = synthetic_dump(n_frames=60, n_gt_per_frame=12, seed=22)
     save_parquet(tmp_path / "ds", dump, rows_per_part=150)
-    options = {"score_method": "temperature", "cov_method": "depth",
-               "region_method": "conformal", "min_group": 15}
-    in_memory = fit_profile(load_parquet(tmp_path / "ds"), **options)
+    options = {"min_group": 15}
+    loaded = load_parquet(tmp_path / "ds")
+    in_memory = fit_profile(loaded, **options)
     with dask_client("local:2") as client:
         streamed = fit_profile_stream(tmp_path / "ds", client=client, **options)
     assert streamed.region_method == "conformal"
-    assert_close_tree(streamed.regions, in_memory.regions, "regions")
+    assert_close_tree(streamed.report["selection"]["score"],
+                      in_memory.report["selection"]["score"], "score")
+    assert np.abs(apply_profile(loaded, streamed).scores
+                  - apply_profile(loaded, in_memory).scores).max() < 1e-6
+    assert_close_tree(streamed.regions, in_memory.regions, "regions", rel=1e-4)
     for source, stage in in_memory.sources.items():
         assert_close_tree(streamed.sources[source]["regions"], stage["regions"], source)

@@ -108,15 +108,12 @@ def test_report_summarises_a_bounded_sample_and_says_so(tmp_path):
     assert sample["holdout"]["frames"] <= sample["holdout"]["of_frames"] == 10
 
 
-@pytest.mark.parametrize("options, field", [
-    ({}, "score_method"),                              # auto with a calibration part
-    ({"score_method": "isotonic", "cov_method": "depth"}, "score_method"),
-])
-def test_options_the_stream_cannot_reproduce_are_refused(tmp_path, options, field):
-    save_parquet(tmp_path / "ds", synthetic_dump(n_frames=10, seed=12))
-    with pytest.raises(OptionError, match=f"cannot reproduce {field}") as err:
-        fit_profile_stream(tmp_path / "ds", **options)
-    assert err.value.field == field
+def test_auto_scores_on_softmax_are_refused(tmp_path):
+    """The temperature candidate of softmax scores has no per-row statistic."""
+    save_parquet(tmp_path / "ds", synthetic_dump(n_frames=10, seed=12, score_mode="softmax"))
+    with pytest.raises(OptionError, match="cannot reproduce score_method='auto'") as err:
+        fit_profile_stream(tmp_path / "ds")
+    assert err.value.field == "score_method"
 
 
 CONFORMAL = {"score_method": "temperature", "cov_method": "depth"}
@@ -168,10 +165,12 @@ def test_the_calibration_part_is_the_same_whatever_the_partitioning(tmp_path):
 
 
 def test_auto_means_the_thesis_methods_without_a_calibration_part():
-    check_stream_options(FitOptions(calibration=0.0))
-    check_stream_options(FitOptions(), n_fit_frames=1)
+    for mode in ("sigmoid", "softmax", None):
+        check_stream_options(FitOptions(calibration=0.0), score_mode=mode)
+        check_stream_options(FitOptions(), n_fit_frames=1, score_mode=mode)
+    check_stream_options(FitOptions(), n_fit_frames=2, score_mode="sigmoid")
     with pytest.raises(OptionError):
-        check_stream_options(FitOptions(), n_fit_frames=2)
+        check_stream_options(FitOptions(), n_fit_frames=2, score_mode="softmax")
 
 
 def test_data_errors_match_the_in_memory_messages(tmp_path):
