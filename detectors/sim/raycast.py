@@ -4,7 +4,8 @@ A sensor is a grid of rays: ``A`` azimuths uniform over 360 degrees times ``E`` 
 Each box is only tested against the rays inside its azimuth / elevation window, so the cost
 is proportional to the solid angle the boxes cover, not to ``rays x boxes``. The nearest hit
 along each ray wins (a z-buffer per ray), which gives self-occlusion (only faces towards the
-sensor are seen) and occlusion by nearer objects for free.
+sensor are seen) and occlusion by nearer objects for free. ``cast`` is ``box_hits`` (every
+ray-box hit, each box as if alone) then ``nearest_hits`` (that z-buffer, with the ground).
 """
 
 from __future__ import annotations
@@ -57,10 +58,55 @@ class RayHits:
     points: np.ndarray
 
 
+@dataclass(frozen=True)
+class BoxHits:
+    """Every hit of a ray on a box within range, each box as if it were alone (no z-buffer).
+
+    ray: [K] int64 ray index; dist: [K] range of the box's near face along the ray (m);
+    owner: [K] int64 box index; cos_incidence: [K] as in RayHits. A box's rows are the rays
+    it would own if nothing else were in the scene.
+    """
+
+    ray: np.ndarray
+    dist: np.ndarray
+    owner: np.ndarray
+    cos_incidence: np.ndarray
+
+
+@dataclass(frozen=True)
+class AngularExtent:
+    """Directions each box covers, seen from an origin (radians).
+
+    azimuth: [B] bearing of the box centre; az_lo, az_hi: [B] smallest and largest azimuth
+    offset of its BEV corners from `azimuth` (its whole azimuth span: the faces are
+    vertical); el_lo, el_hi: [B] lowest and highest elevation of the box; d_min, d_max: [B]
+    BEV distance to its nearest point and to its farthest corner.
+    """
+
+    azimuth: np.ndarray
+    az_lo: np.ndarray
+    az_hi: np.ndarray
+    el_lo: np.ndarray
+    el_hi: np.ndarray
+    d_min: np.ndarray
+    d_max: np.ndarray
+
+
 def cast(grid: RayGrid, boxes: np.ndarray, max_range: float) -> RayHits:
     """Cast every ray of `grid` against `boxes` [B, >=7] and the ground plane z = 0."""
+    return nearest_hits(grid, box_hits(grid, boxes, max_range), max_range)
+
+
+def box_hits(grid: RayGrid, boxes: np.ndarray, max_range: float) -> BoxHits:
+    """Every ray of `grid` that hits a box of `boxes` [B, >=7] within `max_range`."""
     origin = np.asarray(grid.origin, dtype=np.float64)
-    ray, dist, owner, cos_inc = _box_hits(grid, boxes, origin, max_range)
+    return BoxHits(*_box_hits(grid, boxes, origin, max_range))
+
+
+def nearest_hits(grid: RayGrid, hits: BoxHits, max_range: float) -> RayHits:
+    """The nearest of `hits` and the ground plane z = 0 along every ray (the z-buffer)."""
+    origin = np.asarray(grid.origin, dtype=np.float64)
+    ray, dist, owner, cos_inc = hits.ray, hits.dist, hits.owner, hits.cos_incidence
     g_ray, g_dist = _ground_hits(grid, origin, max_range)
     g_cos = -np.sin(grid.elevation[g_ray // grid.n_azimuth])
     ray = np.concatenate([ray, g_ray])
@@ -74,6 +120,24 @@ def cast(grid: RayGrid, boxes: np.ndarray, max_range: float) -> RayHits:
     ray, dist, owner, cos_inc = ray[first], dist[first], owner[first], cos_inc[first]
     points = origin[None] + dist[:, None] * grid.directions(ray)
     return RayHits(ray, dist, owner, cos_inc, points)
+
+
+def angular_extent(origin: np.ndarray, boxes: np.ndarray) -> AngularExtent:
+    """Azimuth and elevation window of each box [B, >=7] seen from `origin` [3]."""
+    d_min = bev_distance_to_box(origin[:2], boxes)
+    corners = bev_corners(boxes) - origin[None, None, :2]
+    corner_d = np.hypot(corners[..., 0], corners[..., 1])
+    d_max = corner_d.max(axis=1)
+    az_c = np.arctan2(boxes[:, 1] - origin[1], boxes[:, 0] - origin[0])
+    rel = np.arctan2(corners[..., 1], corners[..., 0]) - az_c[:, None]
+    rel = wrap_angle(rel)
+    zb = boxes[:, 2] - boxes[:, 5] / 2 - origin[2]
+    zt = boxes[:, 2] + boxes[:, 5] / 2 - origin[2]
+    # The top and bottom edges are highest / lowest at the nearest or the farthest point.
+    safe_min = np.maximum(d_min, 1e-3)
+    el_lo = np.minimum(np.arctan2(zb, safe_min), np.arctan2(zb, d_max))
+    el_hi = np.maximum(np.arctan2(zt, safe_min), np.arctan2(zt, d_max))
+    return AngularExtent(az_c, rel.min(axis=1), rel.max(axis=1), el_lo, el_hi, d_min, d_max)
 
 
 def _ground_hits(
@@ -97,20 +161,11 @@ def _box_hits(
     empty = (np.zeros(0, np.int64), np.zeros(0), np.zeros(0, np.int64), np.zeros(0))
     if len(boxes) == 0:
         return empty
-    d_min = bev_distance_to_box(origin[:2], boxes)
-    corners = bev_corners(boxes) - origin[None, None, :2]
-    corner_d = np.hypot(corners[..., 0], corners[..., 1])
-    d_max = corner_d.max(axis=1)
-    az_c = np.arctan2(boxes[:, 1] - origin[1], boxes[:, 0] - origin[0])
-    rel = np.arctan2(corners[..., 1], corners[..., 0]) - az_c[:, None]
-    rel = wrap_angle(rel)
-    i0 = np.ceil((az_c + rel.min(axis=1)) / res).astype(np.int64)
-    i1 = np.floor((az_c + rel.max(axis=1)) / res).astype(np.int64)
-    zb = boxes[:, 2] - boxes[:, 5] / 2 - origin[2]
-    zt = boxes[:, 2] + boxes[:, 5] / 2 - origin[2]
-    safe_min = np.maximum(d_min, 1e-3)
-    el_lo = np.minimum(np.arctan2(zb, safe_min), np.arctan2(zb, d_max))
-    el_hi = np.maximum(np.arctan2(zt, safe_min), np.arctan2(zt, d_max))
+    ext = angular_extent(origin, boxes)
+    d_min = ext.d_min
+    i0 = np.ceil((ext.azimuth + ext.az_lo) / res).astype(np.int64)
+    i1 = np.floor((ext.azimuth + ext.az_hi) / res).astype(np.int64)
+    el_lo, el_hi = ext.el_lo, ext.el_hi
     j0 = np.searchsorted(grid.elevation, el_lo, side="left")
     j1 = np.searchsorted(grid.elevation, el_hi, side="right")
     n_a = np.maximum(i1 - i0 + 1, 0)
