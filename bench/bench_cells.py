@@ -25,6 +25,7 @@ import numpy as np
 
 from bench._report import write_section
 from calibrators import (
+    CalibrationProfile,
     FitOptions,
     apply_profile,
     fit_profile,
@@ -64,7 +65,11 @@ class Served:
 
 
 def serve(val: Dump, test: Dump, options: FitOptions) -> Served:
-    profile = fit_profile(val, options)
+    return served(fit_profile(val, options), test)
+
+
+def served(profile: CalibrationProfile, test: Dump) -> Served:
+    """What `profile` serves on `test`, read at its true positives (`Served`)."""
     out = apply_profile(test, profile, levels=LEVELS)
     matched = match_dump(test)
     tp = np.asarray(matched.tp, dtype=bool)

@@ -21,7 +21,6 @@ ALLOWED_PRIVATE_MODULES = {
     ("tests/calibrators/covariance/test_depth_blocks.py", "calibrators.covariance._spectral"),
     ("tests/calibrators/evaluation/test_matching.py", "calibrators.evaluation._matching"),
     ("tests/calibrators/fit/test_fit_stream.py", "calibrators.fit._stream"),
-    ("tests/calibrators/fit/test_fit_stream_scores.py", "calibrators.fit._stream"),
     ("tests/calibrators/fit/test_fit_stream.py", "calibrators.scores._temperature"),
     ("tests/calibrators/scores/test_temperature.py", "calibrators.scores._temperature"),
 }

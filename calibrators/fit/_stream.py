@@ -125,11 +125,13 @@ def check_stream_options(options: FitOptions, n_fit_frames: int | None = None,
 def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: Any = None,
                        progress: Progress | None = None,
                        report_detections: int = REPORT_DETECTIONS,
-                       **overrides: Any) -> CalibrationProfile:
+                       exact_rows: int = EXACT_ROWS, **overrides: Any) -> CalibrationProfile:
     """Fit a profile from the Parquet dataset at `path` (module docstring).
 
     options / overrides: as `fit_profile`. client: a `distributed.Client` to run the
     per-part work on (None: in this process). progress: `progress(stage, fraction)`.
+    exact_rows: the fit detections up to which the score stage's tables hold the rows
+    themselves (the in-memory stage, 28 bytes a detection), cell counts above.
     Raises `OptionError` for options a streamed fit cannot reproduce, `FieldError` for a bad
     dataset, ValueError for data that cannot be fit (the messages of `fit_profile`).
     """
@@ -146,7 +148,8 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     mapper = Mapper(client)
 
     report_progress("match", 0.1)
-    chunks, firsts, n_fit, n_tp, tables = _first_passes(ds, held, calib, opts, sources, mapper)
+    chunks, firsts, n_fit, n_tp, tables = _first_passes(ds, held, calib, opts, sources, mapper,
+                                                        exact_rows)
 
     report_progress("scores", 0.25)
     temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper)
@@ -189,7 +192,7 @@ def _light_pass(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper
 
 
 def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None,
-                  opts: FitOptions, sources: tuple[str, ...], mapper: Mapper
+                  opts: FitOptions, sources: tuple[str, ...], mapper: Mapper, exact_rows: int
                   ) -> tuple[list[Chunk], list[FirstPass], int, int, ScoreTables | None]:
     """The parts (each with the offset of its first fit row), their first passes (module
     docstring, step 3; their score tables summed as they come, then dropped), the fit rows,
@@ -199,7 +202,7 @@ def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None
     n_rows, span = _light_pass(ds, chunks, mapper)
     per_class = candidate_names(opts.score_method, calib is not None) != ["temperature"]
     if per_class:
-        mode = "exact" if n_rows <= EXACT_ROWS else "grid"
+        mode = "exact" if n_rows <= exact_rows else "grid"
         chunks = [replace(c, score_table=mode) for c in chunks]
     firsts: list[FirstPass] = []
     tables: ScoreTables | None = None

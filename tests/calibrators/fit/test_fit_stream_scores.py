@@ -9,8 +9,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-# `EXACT_ROWS`, patched below, is a global of this private module read at call time.
-import calibrators.fit._stream as fit_stream
 from calibrators.data import synthetic_dump
 from calibrators.fit import fit_profile, fit_profile_stream
 from calibrators.io import load_parquet, save_parquet
@@ -18,11 +16,11 @@ from calibrators.profile import apply_profile
 from tests.calibrators.fit.test_fit_stream import assert_close_tree
 
 
-def fit_both(tmp_path, dump, rows_per_part=170, **options):
+def fit_both(tmp_path, dump, rows_per_part=170, exact_rows=1 << 20, **options):
     save_parquet(tmp_path / "ds", dump, rows_per_part=rows_per_part)
     loaded = load_parquet(tmp_path / "ds")
-    return (fit_profile_stream(tmp_path / "ds", **options), fit_profile(loaded, **options),
-            loaded)
+    return (fit_profile_stream(tmp_path / "ds", exact_rows=exact_rows, **options),
+            fit_profile(loaded, **options), loaded)
 
 
 def served_scores(profile, dump):
@@ -59,12 +57,11 @@ def test_the_score_stage_is_the_same_whatever_the_partitioning(tmp_path):
         assert np.abs(other - scores[0]).max() < 1e-12
 
 
-def test_the_cell_counts_of_a_large_fit_choose_as_the_rows_do(tmp_path, monkeypatch):
-    """Above `EXACT_ROWS` the stage fits on the tables' cell counts: the candidates' held-out
+def test_the_cell_counts_of_a_large_fit_choose_as_the_rows_do(tmp_path):
+    """Above `exact_rows` the stage fits on the tables' cell counts: the candidates' held-out
     NLL moves by < 1e-4, the choice and κ stay, and served scores move by little."""
-    monkeypatch.setattr(fit_stream, "EXACT_ROWS", 0)
     dump = synthetic_dump(n_frames=120, n_gt_per_frame=15, seed=33)
-    streamed, in_memory, loaded = fit_both(tmp_path, dump, rows_per_part=400)
+    streamed, in_memory, loaded = fit_both(tmp_path, dump, rows_per_part=400, exact_rows=0)
     got, want = (p.report["selection"]["score"] for p in (streamed, in_memory))
     assert got["chosen"] == want["chosen"] and got["shrink"] == want["shrink"]
     for name, cand in want["candidates"].items():
