@@ -102,17 +102,18 @@ def choose_score_method(names: list[str], train: ScoreTable, calib: ScoreTable |
     """`(method, each candidate's held-out {"nll", "ece"}, κ, each κ's held-out NLL)`:
     every candidate of `names` fit on the training part's table and scored on the
     calibration part's (`temperature_p()`: the global temperature's probabilities of the
-    calibration rows, in `calib.rows()` order), then κ chosen the same way when `shrink` is
-    None (module docstring)."""
+    calibration rows, in `calib.rows()` order; a calibrator with a range term is fit and
+    scored on the by-range cells), then κ chosen the same way when `shrink` is None (module
+    docstring)."""
     candidates: dict[str, dict[str, float]] = {}
     on_train: dict[str, Any] = {}
-    rows = None if calib is None else calib.rows()
-    if rows is not None and len(names) > 1:
+    if calib is not None and len(names) > 1:
         for name in names:
             if name == "temperature":
-                p = temperature_p()
+                rows, p = calib.rows(), temperature_p()
             else:
                 on_train[name] = fitted = fit_classwise(name, train, min_samples)
+                rows = calib.rows(by_range=fitted.uses_distances)
                 p = _transform(fitted, rows)
             candidates[name] = {
                 "nll": metrics.classification_nll(p, rows.hit, sample_weight=rows.weight),
@@ -122,9 +123,9 @@ def choose_score_method(names: list[str], train: ScoreTable, calib: ScoreTable |
     else:
         chosen = names[0]
     kappas: dict[float, float] = {}
-    if shrink is None and rows is not None and chosen != "temperature":
+    if shrink is None and calib is not None and chosen != "temperature":
         fitted = on_train.get(chosen) or fit_classwise(chosen, train, min_samples)
-        kappas = _shrink_nll(fitted, rows)
+        kappas = _shrink_nll(fitted, calib.rows(by_range=fitted.uses_distances))
         shrink = min(kappas, key=lambda k: (kappas[k], float(k)))
     return chosen, candidates, float(shrink or 0.0), kappas
 
@@ -152,11 +153,12 @@ def score_table(dump: Dump, tp: np.ndarray, modulation: bool, exact: bool = True
 
 
 def fit_classwise(name: str, table: ScoreTable, min_samples: int, shrink: float = 0.0) -> Any:
-    """The per-class calibrator `name` fit on a table's rows (weighted by their counts)."""
-    rows = table.rows()
-    return make_score_calibrator(name, min_samples=min_samples, shrink=shrink).fit(
-        rows.z, rows.labels, rows.hit, table.n_classes, distances=rows.distances,
-        sample_weight=rows.weight)
+    """The per-class calibrator `name` fit on a table's rows (weighted by their counts; the
+    by-range cells for a calibrator with a range term)."""
+    calibrator = make_score_calibrator(name, min_samples=min_samples, shrink=shrink)
+    rows = table.rows(by_range=calibrator.uses_distances)
+    return calibrator.fit(rows.z, rows.labels, rows.hit, table.n_classes,
+                          distances=rows.distances, sample_weight=rows.weight)
 
 
 def _shrink_nll(fitted: Any, rows: ScoreRows) -> dict[float, float]:

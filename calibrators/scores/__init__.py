@@ -38,6 +38,7 @@ from calibrators.scores._registry import (
 from calibrators.scores._score_table import (
     D_WIDTH,
     EXACT_ROWS,
+    RANGE_Z_WIDTH,
     Z_WIDTH,
     ScoreRows,
     ScoreTable,
@@ -59,7 +60,7 @@ from calibrators.scores._temperature_nll import (
 )
 
 __all__ = ["D_WIDTH", "EXACT_ROWS", "SCORE_CALIBRATION_METHODS", "SIGMOID_BINS", "SUBSAMPLE_MIN",
-           "Z_WIDTH",
+           "RANGE_Z_WIDTH", "Z_WIDTH",
            "ClassTemperatureScaler", "ClasswiseCalibrator", "HistogramBinning",
            "IsotonicCalibrator", "KnotCalibrator", "PlattScaler", "ScoreRows", "ScoreTable",
            "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities",

@@ -181,6 +181,11 @@ class ClasswiseCalibrator:
         return self
 
     @property
+    def uses_distances(self) -> bool:
+        """Whether `fit` and `transform` need distances (a range term)."""
+        return self._needs_distances()
+
+    @property
     def method_name(self) -> str:
         """The factory name of this calibrator (`make_score_calibrator`)."""
         return self.method

@@ -1,6 +1,7 @@
 """`ScoreTable`: the tables of any split of the data add to the table of the whole, and a
 calibrator fit on its weighted rows is the fit of the detections they stand for (a row of
-weight w is w copies of itself); on cells, fits move by what the cell width allows."""
+weight w is w copies of itself); on cells, fits move by what the cell width allows; the
+number of cells is bounded whatever the number of detections."""
 
 from __future__ import annotations
 
@@ -40,20 +41,22 @@ def test_tables_of_any_split_add_to_the_whole(n, seed, cuts, exact):
     for part in parts[::-1]:
         merged = merged + part
     assert merged.n == whole.n == n
-    if exact:   # the rows themselves, as a multiset
-        got = sorted(zip(merged.sum_z, merged.labels, merged.hit, merged.sum_d, strict=True))
-        want = sorted(zip(z, labels, hit, d, strict=True))
-        assert got == want
-    else:
-        assert (merged.keys == whole.keys).all()
-        np.testing.assert_allclose(merged.count, whole.count)
-        np.testing.assert_allclose(merged.sum_z, whole.sum_z, rtol=1e-12, atol=1e-9)
-        np.testing.assert_allclose(merged.sum_d, whole.sum_d, rtol=1e-12, atol=1e-9)
+    for by_range in (False, True):
+        got, want = merged.rows(by_range), whole.rows(by_range)
+        if exact:   # the rows themselves, as a multiset
+            assert sorted(zip(got.z, got.labels, got.hit, got.distances, strict=True)) == \
+                sorted(zip(z, labels, hit, d, strict=True))
+            continue
+        assert (got.labels == want.labels).all() and (got.hit == want.hit).all()
+        np.testing.assert_allclose(got.weight, want.weight)
+        np.testing.assert_allclose(got.z, want.z, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(got.distances, want.distances, rtol=1e-12, atol=1e-9)
 
 
-def test_rows_keep_class_outcome_and_cell_means():
+@pytest.mark.parametrize("by_range", [False, True])
+def test_rows_keep_class_outcome_and_cell_sums(by_range):
     z, labels, hit, d = sample(2000, 1)
-    rows = ScoreTable.build(z, labels, hit, d, C).rows()
+    rows = ScoreTable.build(z, labels, hit, d, C).rows(by_range)
     assert rows.weight.sum() == 2000
     for k in range(C):
         for h in (False, True):
@@ -85,8 +88,9 @@ def test_a_weight_is_that_many_copies_of_the_row(method):
 @pytest.mark.parametrize("method", SCORE_CALIBRATION_METHODS)
 def test_a_fit_on_cells_moves_by_what_the_cell_width_allows(method):
     z, labels, hit, d = sample(20_000, 4)
-    rows = ScoreTable.build(z, labels, hit, d, C).rows()
-    cells = make_score_calibrator(method).fit(rows.z, rows.labels, rows.hit, C,
+    cells = make_score_calibrator(method)
+    rows = ScoreTable.build(z, labels, hit, d, C).rows(by_range=cells.uses_distances)
+    cells = cells.fit(rows.z, rows.labels, rows.hit, C,
                                               distances=rows.distances,
                                               sample_weight=rows.weight)
     exact = make_score_calibrator(method).fit(z, labels, hit, C, distances=d)
@@ -108,3 +112,15 @@ def test_weighted_metrics_count_each_row_its_weight():
         expected_calibration_error(p[copies], y[copies]))
     with pytest.raises(FieldError, match="sample_weight"):
         classification_nll(p, y, sample_weight=-w)
+
+
+def test_the_cells_are_bounded_whatever_the_detections():
+    """Logits within ±8 and distances within 70 m fill at most their grids' cells."""
+    from calibrators.scores import D_WIDTH, RANGE_Z_WIDTH, Z_WIDTH
+
+    z, labels, hit, d = sample(400_000, 6)
+    z = np.clip(z, -8, 8 - 1e-9)
+    table = ScoreTable.build(z, labels, hit, d, C)
+    assert len(table.rows().z) <= C * 2 * 16 / Z_WIDTH
+    assert len(table.rows(by_range=True).z) <= C * 2 * (16 / RANGE_Z_WIDTH) * (70 / D_WIDTH)
+    assert len(table.rows().z) < z.size / 4
