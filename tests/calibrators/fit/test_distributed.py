@@ -72,3 +72,11 @@ def test_dask_default_fit_equals_the_in_memory_one(tmp_path):
     assert_close_tree(streamed.regions, in_memory.regions, "regions", rel=1e-4)
     for source, stage in in_memory.sources.items():
         assert_close_tree(streamed.sources[source]["regions"], stage["regions"], source)
+
+
+def test_a_corrupt_part_read_by_a_worker_is_named(tmp_path):
+    save_parquet(tmp_path / "ds", synthetic_dump(n_frames=20, seed=23), rows_per_part=200)
+    part = sorted((tmp_path / "ds" / "detections").glob("*.parquet"))[1]
+    part.write_bytes(part.read_bytes()[:100])
+    with dask_client("local:2") as client, pytest.raises(FieldError, match=part.name):
+        fit_profile_stream(tmp_path / "ds", client=client)

@@ -231,3 +231,15 @@ def test_sigmoid_bins_of_chunks_add_up_and_coarsen():
     assert np.allclose(coarse.offset_sq, direct.offset_sq, rtol=1e-9)
     with pytest.raises(ValueError, match="different grids"):
         whole + direct
+
+
+@pytest.mark.parametrize("damage", ["truncated", "overwritten"])
+def test_a_corrupt_part_is_named(tmp_path, damage):
+    from calibrators.core.errors import FieldError
+
+    save_parquet(tmp_path / "ds", synthetic_dump(n_frames=20, seed=14), rows_per_part=200)
+    part = sorted((tmp_path / "ds" / "detections").glob("*.parquet"))[1]
+    data = part.read_bytes()
+    part.write_bytes(data[:len(data) // 2] if damage == "truncated" else b"\0" * len(data))
+    with pytest.raises(FieldError, match=f"detections/{part.name} is not a Parquet file"):
+        fit_profile_stream(tmp_path / "ds")
