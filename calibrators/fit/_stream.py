@@ -43,9 +43,7 @@ from __future__ import annotations
 
 from collections.abc import Callable
 from dataclasses import replace
-from functools import reduce
-from operator import add
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -148,15 +146,15 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     mapper = Mapper(client)
 
     report_progress("match", 0.1)
-    chunks, firsts, n_fit, n_tp, tables = _first_passes(ds, held, calib, opts, sources, mapper,
-                                                        exact_rows)
+    chunks, firsts, n_fit, n_tp, sums = _first_passes(ds, held, calib, opts, sources, mapper,
+                                                      exact_rows)
 
     report_progress("scores", 0.25)
-    temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper)
+    temperature = _temperature(ds, opts, chunks, firsts, n_fit, mapper, sums.sigmoid)
     scores = ScoreFit(method="temperature", temperature=temperature, params=None)
-    if tables is not None:
-        scores = stream_scores(opts, tables, temperature, lambda: _train_temperature(
-            ds, opts, firsts))
+    if sums.tables is not None:
+        scores = stream_scores(opts, sums.tables, temperature, lambda: _sigmoid_temperature(
+            sums.sigmoid_train, _width(ds, opts)))
     report_progress("covariance", 0.4)
     tps = None if calib is None else [f.calib for f in firsts]
     covs = {s: stream_covariance(ds.classes, s, firsts, tps, opts) for s in sources}
@@ -191,13 +189,27 @@ def _light_pass(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper
     return n_rows, None
 
 
+SigmoidStats = SigmoidBins | list[tuple[np.ndarray, np.ndarray]] | None
+
+
+class _Sums(NamedTuple):
+    """What the first passes return summed over the parts as they arrive (each part's own
+    copy dropped): the score tables (None: no per-class score method to fit), and the sigmoid
+    temperature statistics of all fit rows and of the training part's (`SigmoidBins`
+    summed, or the parts' predicted logits and labels for small fits; None: softmax)."""
+
+    tables: ScoreTables | None = None
+    sigmoid: SigmoidStats = None
+    sigmoid_train: SigmoidStats = None
+
+
 def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None,
                   opts: FitOptions, sources: tuple[str, ...], mapper: Mapper, exact_rows: int
-                  ) -> tuple[list[Chunk], list[FirstPass], int, int, ScoreTables | None]:
+                  ) -> tuple[list[Chunk], list[FirstPass], int, int, _Sums]:
     """The parts (each with the offset of its first fit row), their first passes (module
-    docstring, step 3; their score tables summed as they come, then dropped), the fit rows,
-    the true positives and the summed score tables (None: no per-class score method to fit);
-    the ValueErrors of `fit_profile` when nothing is left to fit on or nothing matched."""
+    docstring, step 3) with their additive statistics summed as they come (`_Sums`), the fit
+    rows and the true positives; the ValueErrors of `fit_profile` when nothing is left to
+    fit on or nothing matched."""
     chunks = _chunks(ds, held, calib, opts)
     n_rows, span = _light_pass(ds, chunks, mapper)
     per_class = candidate_names(opts.score_method, calib is not None) != ["temperature"]
@@ -205,12 +217,13 @@ def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None
         mode = "exact" if n_rows <= exact_rows else "grid"
         chunks = [replace(c, score_table=mode) for c in chunks]
     firsts: list[FirstPass] = []
-    tables: ScoreTables | None = None
+    sums = _Sums()
     for first in mapper.imap(first_pass, chunks, sources=sources, span=span):
-        if first.scores is not None:
-            tables = first.scores if tables is None else tables + first.scores
-            first = replace(first, scores=None)
-        firsts.append(first)
+        sums = _Sums(sums.tables if first.scores is None else first.scores
+                     if sums.tables is None else sums.tables + first.scores,
+                     _fold(sums.sigmoid, first.sigmoid),
+                     _fold(sums.sigmoid_train, first.sigmoid_train))
+        firsts.append(replace(first, scores=None, sigmoid=None, sigmoid_train=None))
     counts = np.array([f.n_fit_detections for f in firsts])
     if sum(int(f.fit_per_frame.sum() + f.held_per_frame.sum()) for f in firsts) == 0:
         raise ValueError(f"min_score={opts.min_score} leaves no detection to fit on")
@@ -220,7 +233,17 @@ def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None
                          f"(threshold); check the dump's coordinates and classes")
     offsets = np.concatenate([[0], np.cumsum(counts)[:-1]])
     chunks = [replace(c, offset=int(o)) for c, o in zip(chunks, offsets, strict=True)]
-    return chunks, firsts, int(counts.sum()), n_tp, tables
+    return chunks, firsts, int(counts.sum()), n_tp, sums
+
+
+def _fold(acc: SigmoidStats, part: SigmoidBins | tuple[np.ndarray, np.ndarray] | None
+          ) -> SigmoidStats:
+    """`acc` with a part's sigmoid statistics added (bins summed, logits listed)."""
+    if part is None:
+        return acc
+    if isinstance(part, SigmoidBins):
+        return part if acc is None else acc + part   # type: ignore[operator]
+    return [*(acc or []), part]   # type: ignore[misc]
 
 
 def _assembled(empty: Any, opts: FitOptions, scores: ScoreFit, covs: dict[str, CovarianceFit],
@@ -264,12 +287,14 @@ def _chunks(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None, opts
 
 
 def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
-                 firsts: list[FirstPass], n: int, mapper: Mapper) -> float:
-    """T as `TemperatureScaler.fit` finds it on all fit rows (module docstring, step 3)."""
+                 firsts: list[FirstPass], n: int, mapper: Mapper, sigmoid: SigmoidStats
+                 ) -> float:
+    """T as `TemperatureScaler.fit` finds it on all fit rows (module docstring, step 3):
+    sigmoid from the summed statistics `sigmoid`."""
     scaler = TemperatureScaler(mode=ds.score_mode)
     width = _width(ds, opts)
     if ds.score_mode == "sigmoid":
-        return _sigmoid_temperature([f.sigmoid for f in firsts], width)
+        return _sigmoid_temperature(sigmoid, width)
 
     labels = [f.softmax_labels for f in firsts]
 
@@ -290,19 +315,13 @@ def _temperature(ds: ParquetDataset, opts: FitOptions, chunks: list[Chunk],
     return float(scaler.temperature_)
 
 
-def _train_temperature(ds: ParquetDataset, opts: FitOptions, firsts: list[FirstPass]
-                       ) -> float:
-    """The sigmoid T of the training part alone (the score stage's temperature candidate)."""
-    return _sigmoid_temperature([f.sigmoid_train for f in firsts], _width(ds, opts))
-
-
-def _sigmoid_temperature(stats: list[Any], width: int) -> float:
-    """The sigmoid T of the parts' `SigmoidBins` (summed) or predicted logits and labels."""
+def _sigmoid_temperature(stats: SigmoidStats, width: int) -> float:
+    """The sigmoid T of summed `SigmoidBins` or of the parts' predicted logits and labels."""
     scaler = TemperatureScaler(mode="sigmoid")
-    if isinstance(stats[0], SigmoidBins):
-        bins: SigmoidBins = reduce(add, stats)
-        scaler.fit_bins(bins, width)
+    if isinstance(stats, SigmoidBins):
+        scaler.fit_bins(stats, width)
     else:
+        assert stats is not None
         s, y = (np.concatenate([part[i] for part in stats]) for i in (0, 1))
         scaler.fit_objective(sigmoid_nll(s, y), len(s), width)
     return float(scaler.temperature_)
