@@ -1,18 +1,54 @@
-"""Image-plane (2-D) boxes: COCO-form detections and ground truth, IoU, and the COCO box
-metrics exactly as pycocotools computes them, vectorised.
+"""Image-plane (2-D) boxes: COCO-form detections and ground truth, IoU, the COCO box metrics
+exactly as pycocotools computes them, vectorised, and the calibration of 2-D detectors.
 
-- `_boxes`: `Detections2D`, `GroundTruth2D` (`image_id`, `category_id`, `bbox` `x, y, w, h`,
-  `score`; `area`, `iscrowd`, `ignore`), validated, and `from_coco` for COCO dicts.
+COCO evaluation:
+- `_boxes`: `Detections2D` (with optional `logits`, `layer_boxes`), `GroundTruth2D`
+  (`image_id`, `category_id`, `bbox` `x, y, w, h`, `score`; `area`, `iscrowd`, `ignore`),
+  validated, and `from_coco` for COCO dicts, each field checked by `_coco_records`.
 - `_iou`: `box_iou`, pycocotools' `maskUtils.iou` for boxes (crowd rule included).
 - `_match`, `_accumulate`: `COCOeval.evaluateImg` matching and `accumulate` curves.
 - `_coco_eval`: `evaluate_coco` -> `CocoEvaluation` (the 12 `summarize()` stats, precision
   and recall arrays, per-category AP / AP50 / AP75).
 - `_params`: the COCO thresholds, area ranges and caps.
+
+Calibration (docs/boxes2d.md):
+- `_labels`: `match_labels` -> `MatchLabels`, each detection's true-positive label at one IoU
+  threshold and the ground truth it took, by the COCO rule.
+- `_edges`, `_features`: box edges `x1, y1, x2, y2`; position features `cx, cy, w, h`
+  relative to the image (`box_features`).
+- `_calibration_errors`: `detection_ece_2d` (D-ECE over box features), `localisation_ece_2d`
+  (LaECE).
+- `_score_inputs`: `score_inputs`, the label's logit and class index for the per-class score
+  calibrators of `calibrators.scores`; `_position`: `PositionCalibrator`, logistic
+  calibration with box-position terms.
+- `_layer_spread`: `edge_covariance`, the covariance of the box edges across decoder layers.
+- `_box_scores`, `_conformal_boxes`: `ConformalBoxes`, split-conformal inner / outer boxes per
+  class × box size (`BoxRegions`).
+- `_coco_instances`, `_coco_read`, `_coco_write`: COCO results and instances files in, and
+  calibrated COCO results out.
 """
 
+from calibrators.boxes2d._box_scores import BOX_SCORES, box_scores
 from calibrators.boxes2d._boxes import Detections2D, GroundTruth2D
+from calibrators.boxes2d._calibration_errors import (
+    DECE_BINS,
+    detection_ece_2d,
+    localisation_ece_2d,
+)
 from calibrators.boxes2d._coco_eval import CocoEvaluation, evaluate_coco
+from calibrators.boxes2d._coco_instances import CocoInstances, parse_instances
+from calibrators.boxes2d._coco_read import (
+    MAX_COCO_BYTES,
+    read_coco_instances,
+    read_coco_results,
+)
+from calibrators.boxes2d._coco_write import coco_results, write_coco_results
+from calibrators.boxes2d._conformal_boxes import COCO_SIZE_EDGES, BoxRegions, ConformalBoxes
+from calibrators.boxes2d._edges import EDGE_NAMES, box_edges, edges_box
+from calibrators.boxes2d._features import BOX_FEATURES, box_features
 from calibrators.boxes2d._iou import box_iou
+from calibrators.boxes2d._labels import MatchLabels, match_labels
+from calibrators.boxes2d._layer_spread import MIN_SIGMA, edge_covariance, edge_sigma
 from calibrators.boxes2d._params import (
     AREA_LABELS,
     AREA_RANGES,
@@ -21,7 +57,15 @@ from calibrators.boxes2d._params import (
     RECALL_THRESHOLDS,
     STAT_NAMES,
 )
+from calibrators.boxes2d._position import PositionCalibrator
+from calibrators.boxes2d._score_inputs import ScoreInputs, category_index, score_inputs
 
-__all__ = ["AREA_LABELS", "AREA_RANGES", "IOU_THRESHOLDS", "MAX_DETS", "RECALL_THRESHOLDS",
-           "STAT_NAMES", "CocoEvaluation", "Detections2D", "GroundTruth2D", "box_iou",
-           "evaluate_coco"]
+__all__ = ["AREA_LABELS", "AREA_RANGES", "BOX_FEATURES", "BOX_SCORES", "COCO_SIZE_EDGES",
+           "DECE_BINS", "EDGE_NAMES", "IOU_THRESHOLDS", "MAX_COCO_BYTES", "MAX_DETS",
+           "MIN_SIGMA", "RECALL_THRESHOLDS", "STAT_NAMES", "BoxRegions", "CocoEvaluation",
+           "CocoInstances", "ConformalBoxes", "Detections2D", "GroundTruth2D", "MatchLabels",
+           "PositionCalibrator", "ScoreInputs", "box_edges", "box_features", "box_iou",
+           "box_scores", "category_index", "coco_results", "detection_ece_2d",
+           "edge_covariance", "edge_sigma", "edges_box", "evaluate_coco",
+           "localisation_ece_2d", "match_labels", "parse_instances", "read_coco_instances",
+           "read_coco_results", "score_inputs", "write_coco_results"]

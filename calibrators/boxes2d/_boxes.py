@@ -7,6 +7,10 @@ Shapes (N detections, G ground-truth boxes):
         category_id  [N] int64     its category
         bbox         [N, 4] float  COCO `x, y, w, h` in pixels: top-left corner, width, height
         score        [N] float     confidence; higher ranks first
+        logits       [N, C'] float the detector's class logits (None: not given); their columns
+                                   follow a class list the caller states (`score_inputs`)
+        layer_boxes  [N, L, 4]     the box `x, y, w, h` of every decoder layer (None: not
+                     float         given), each obeying the box rules
 
     GroundTruth2D
         image_id     [G] int64
@@ -29,12 +33,22 @@ A bad field raises `FieldError` naming it, with the row when one row is at fault
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import Any
 
 import numpy as np
 
-from calibrators.core.checks import as_float_array, as_int_array, check_length
+from calibrators.boxes2d._coco_records import (
+    at_record,
+    boxes,
+    flags,
+    ints,
+    layer_boxes,
+    numbers_of,
+    records,
+    vectors,
+)
+from calibrators.core.checks import as_float_array, as_int_array, check_index, check_length
 from calibrators.core.errors import FieldError
 
 __all__ = ["Detections2D", "GroundTruth2D"]
@@ -48,6 +62,8 @@ class Detections2D:
     category_id: np.ndarray
     bbox: np.ndarray
     score: np.ndarray
+    logits: np.ndarray | None = None
+    layer_boxes: np.ndarray | None = None
 
     def __post_init__(self) -> None:
         image_id = as_int_array("image_id", self.image_id)
@@ -58,15 +74,36 @@ class Detections2D:
         score = as_float_array("score", self.score, ndim=1)
         check_length("score", score, n, "image_id")
         _set(self, "score", score)
+        if self.logits is not None:
+            logits = as_float_array("logits", self.logits, ndim=2)
+            check_length("logits", logits, n, "image_id")
+            if logits.shape[1] == 0:
+                raise FieldError("logits", "logits must have at least one column")
+            _set(self, "logits", logits)
+        if self.layer_boxes is not None:
+            _set(self, "layer_boxes", check_layer_boxes(self.layer_boxes, n))
 
     def __len__(self) -> int:
         return len(self.image_id)
 
+    def take(self, rows: object) -> Detections2D:
+        """The detections at `rows` (int indices `[M]` or a bool mask `[N]`), in that order."""
+        return _take(self, rows)
+
     @classmethod
     def from_coco(cls, results: Sequence[Mapping[str, Any]]) -> Detections2D:
-        """Detections from a COCO results list: `{"image_id", "category_id", "bbox", "score"}`
-        per detection (other keys ignored)."""
-        return cls(**_columns(results, ("image_id", "category_id", "bbox", "score"), "results"))
+        """Detections from a COCO results list: `image_id`, `category_id`, `bbox`, `score`
+        per detection, and optionally `logits` (C' numbers) and `layer_boxes` (L boxes) in
+        every record or none; other keys are ignored. Each value is checked as the COCO format
+        types it (`_coco_records`); a bad one raises FieldError naming the record and key."""
+        rows = records(results, "results")
+        what = "results"
+        try:
+            return cls(ints(rows, "image_id", what), ints(rows, "category_id", what),
+                       boxes(rows, "bbox", what), numbers_of(rows, "score", what),
+                       vectors(rows, "logits", what), layer_boxes(rows, "layer_boxes", what))
+        except FieldError as exc:
+            raise at_record(exc, what) from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -100,14 +137,23 @@ class GroundTruth2D:
     def __len__(self) -> int:
         return len(self.image_id)
 
+    def take(self, rows: object) -> GroundTruth2D:
+        """The boxes at `rows` (int indices `[M]` or a bool mask `[G]`), in that order."""
+        return _take(self, rows)
+
     @classmethod
     def from_coco(cls, annotations: Sequence[Mapping[str, Any]]) -> GroundTruth2D:
         """Ground truth from a COCO `annotations` list: `image_id`, `category_id`, `bbox`,
-        `area` and `iscrowd` (0 when absent) per box, the fields pycocotools reads."""
-        columns = _columns(annotations, ("image_id", "category_id", "bbox", "area"),
-                           "annotations")
-        columns["iscrowd"] = np.array([a.get("iscrowd", 0) for a in annotations])
-        return cls(**columns)
+        `area` (>= 0) and `iscrowd` (0 or 1; 0 when absent) per box, the fields pycocotools
+        reads, each checked as `Detections2D.from_coco` checks its fields."""
+        rows = records(annotations, "annotations")
+        what = "annotations"
+        try:
+            return cls(ints(rows, "image_id", what), ints(rows, "category_id", what),
+                       boxes(rows, "bbox", what), numbers_of(rows, "area", what, low=0.0),
+                       flags(rows, "iscrowd", what, default=0))
+        except FieldError as exc:
+            raise at_record(exc, what) from None
 
 
 def check_bbox(name: str, value: object, n: int | None, other: str = "image_id") -> np.ndarray:
@@ -129,6 +175,25 @@ def check_bbox(name: str, value: object, n: int | None, other: str = "image_id")
                  "an edge x + w or y + h beyond the float range")
     _raise_first(name, ~np.isfinite(area) | ((area == 0) & (w > 0) & (h > 0)),
                  "an area w·h that over- or underflows")
+    return arr
+
+
+def check_layer_boxes(value: object, n: int) -> np.ndarray:
+    """`value` as `[n, L, 4]` float64 boxes (L >= 1) each obeying the module's rules, or a
+    FieldError naming `layer_boxes[i][l]`."""
+    arr = as_float_array("layer_boxes", value, ndim=3)
+    if arr.shape[2] != 4 or arr.shape[1] == 0:
+        raise FieldError("layer_boxes", f"layer_boxes must have shape [N, L, 4] with L >= 1, "
+                                        f"got {arr.shape}")
+    check_length("layer_boxes", arr, n, "image_id")
+    try:
+        check_bbox("layer_boxes", arr.reshape(-1, 4), None)
+    except FieldError as exc:
+        if exc.row is None:
+            raise
+        i, layer = divmod(exc.row, arr.shape[1])
+        text = str(exc).replace(f"layer_boxes[{exc.row}]", f"layer_boxes[{i}][{layer}]", 1)
+        raise FieldError("layer_boxes", text, row=i) from None
     return arr
 
 
@@ -163,20 +228,18 @@ def _raise_first(name: str, bad: np.ndarray, what: str) -> None:
         raise FieldError(name, f"{name}[{i}] has {what}", row=i)
 
 
-def _columns(records: Sequence[Mapping[str, Any]], keys: tuple[str, ...],
-             what: str) -> dict[str, Any]:
-    """The `keys` of every record as columns; a FieldError names a missing one."""
-    columns: dict[str, Any] = {}
-    for key in keys:
-        try:
-            columns[key] = [r[key] for r in records]
-        except (KeyError, TypeError):
-            i = next(i for i, r in enumerate(records)
-                     if not isinstance(r, Mapping) or key not in r)
-            raise FieldError(key, f"{what}[{i}] has no {key!r}", row=i) from None
-    if not records:
-        columns["bbox"] = np.zeros((0, 4))
-    return columns
+def _take(boxes: Any, rows: object) -> Any:
+    """A container of the same type holding `boxes`' rows `rows` (indices or a bool mask)."""
+    index = np.asarray(rows)
+    if index.dtype == bool:
+        if index.shape != (len(boxes),):
+            raise FieldError("rows", f"a row mask must have shape [{len(boxes)}], got "
+                                     f"{index.shape}")
+        index = np.flatnonzero(index)
+    index = as_int_array("rows", index)
+    check_index("rows", index, len(boxes), "rows")
+    return type(boxes)(**{f.name: None if getattr(boxes, f.name) is None
+                          else getattr(boxes, f.name)[index] for f in fields(boxes)})
 
 
 def _set(obj: object, name: str, value: np.ndarray) -> None:

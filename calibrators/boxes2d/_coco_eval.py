@@ -31,7 +31,7 @@ from calibrators.core.bins import ResultMixin
 from calibrators.core.checks import as_int_array
 from calibrators.core.errors import FieldError
 
-__all__ = ["CocoEvaluation", "evaluate_coco"]
+__all__ = ["CocoEvaluation", "evaluate_coco", "grouped"]
 
 #: `summarize()`'s 12 settings: (AP or AR, IoU threshold or None for all, area, maxDets).
 _SUMMARY = ((True, None, "all", 100), (True, .5, "all", 100), (True, .75, "all", 100),
@@ -98,8 +98,8 @@ def evaluate_coco(detections: Detections2D, ground_truth: GroundTruth2D, *,
     dt, gt = detections, ground_truth
     images = _ids("image_ids", image_ids, dt.image_id, gt.image_id)
     categories = _ids("category_ids", category_ids, dt.category_id, gt.category_id)
-    det_rows, det_group = _grouped(dt.image_id, dt.category_id, images, categories)
-    gt_rows, gt_group = _grouped(gt.image_id, gt.category_id, images, categories)
+    det_rows, det_group = grouped(dt.image_id, dt.category_id, images, categories)
+    gt_rows, gt_group = grouped(gt.image_id, gt.category_id, images, categories)
 
     ranked = rank_detections(det_group, dt.score[det_rows])
     rows = det_rows[ranked.rows]  # input rows of the evaluated detections, by (group, rank)
@@ -136,8 +136,8 @@ def _ids(name: str, value: object, *present: np.ndarray) -> np.ndarray:
     return np.unique(as_int_array(name, value))
 
 
-def _grouped(image_id: np.ndarray, category_id: np.ndarray, images: np.ndarray,
-             categories: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def grouped(image_id: np.ndarray, category_id: np.ndarray, images: np.ndarray,
+            categories: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Rows on `images` x `categories` (ascending) and each row's group `category index · I +
     image index` (`[n]` int64 each)."""
     img = np.searchsorted(images, image_id)

@@ -20,6 +20,7 @@ below the smallest threshold can never match and are dropped up front.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -52,12 +53,16 @@ class Matched(NamedTuple):
     true_positive [A, T, E] bool   matched to a ground truth that is not ignored
     in_range [A, E] bool           the detection's box area `w·h` inside each area range
     gt_ignored [A, G] bool         `gtIgnore` of each ground truth
+    gt [A, T, E] int64 | None      the ground truth each detection took (its position in the
+                                   ground-truth arrays given to `match`, -1 for none); only
+                                   when `match` is asked for it (`with_gt`)
     """
 
     matched: np.ndarray
     true_positive: np.ndarray
     in_range: np.ndarray
     gt_ignored: np.ndarray
+    gt: np.ndarray | None = None
 
 
 def rank_detections(group: np.ndarray, score: np.ndarray,
@@ -73,27 +78,35 @@ def rank_detections(group: np.ndarray, score: np.ndarray,
     return Ranked(rows[keep], rank[keep])
 
 
-def area_ignored(area: np.ndarray) -> np.ndarray:
-    """`[A, N]` bool: `area [N]` outside each closed range of `AREA_RANGES`."""
-    bounds = np.asarray(AREA_RANGES)
+def area_ignored(area: np.ndarray, area_ranges: Sequence[tuple[float, float]] = AREA_RANGES
+                 ) -> np.ndarray:
+    """`[A, N]` bool: `area [N]` outside each closed range of `area_ranges` (`[A]` pairs)."""
+    bounds = np.asarray(area_ranges, dtype=np.float64).reshape(-1, 2)
     return (area[None, :] < bounds[:, :1]) | (area[None, :] > bounds[:, 1:])
 
 
 def match(det_group: np.ndarray, det_rank: np.ndarray, det_box: np.ndarray,
           det_slot: np.ndarray, gt_group: np.ndarray, gt_box: np.ndarray, gt_area: np.ndarray,
-          gt_crowd: np.ndarray, gt_ignore: np.ndarray) -> Matched:
+          gt_crowd: np.ndarray, gt_ignore: np.ndarray, *,
+          thresholds: np.ndarray = IOU_THRESHOLDS,
+          area_ranges: Sequence[tuple[float, float]] = AREA_RANGES,
+          with_gt: bool = False) -> Matched:
     """Match E ranked detections to G ground truths by the module's rule.
 
     det_group [E] int64 sorted, det_rank [E] (from `rank_detections`), det_box [E, 4],
     det_slot [E] a permutation: where each detection's results go (the accumulation's order);
     gt_group [G] int64, gt_box [G, 4], gt_area [G], gt_crowd [G] bool, gt_ignore [G] bool,
-    in input order (the order ties between equal IoUs follow).
+    in input order (the order ties between equal IoUs follow). `thresholds [T]` (in [0, 1])
+    and `area_ranges` (`[A]` closed ranges) are the settings (default COCO's); `with_gt`
+    also records which ground truth each detection took (`Matched.gt`).
     """
-    n_area, n_thr, n_det = len(AREA_RANGES), len(IOU_THRESHOLDS), len(det_group)
-    gt_ignored = area_ignored(gt_area) | (gt_crowd | gt_ignore)[None, :]
+    thresholds = np.asarray(thresholds, dtype=np.float64).reshape(-1)
+    n_area, n_thr, n_det = len(area_ranges), len(thresholds), len(det_group)
+    gt_ignored = area_ignored(gt_area, area_ranges) | (gt_crowd | gt_ignore)[None, :]
     matched = np.zeros((n_area, n_thr, n_det), dtype=bool)
     true_positive = np.zeros((n_area, n_thr, n_det), dtype=bool)
-    if n_det and len(gt_group):
+    taken_gt = np.full((n_area, n_thr, n_det), -1, dtype=np.int64) if with_gt else None
+    if n_det and len(gt_group) and n_thr:
         taken = np.zeros((n_area, n_thr, len(gt_group)), dtype=bool)
         gt_order = np.argsort(gt_group, kind="stable")
         first = np.searchsorted(gt_group[gt_order], det_group, side="left")
@@ -104,12 +117,12 @@ def match(det_group: np.ndarray, det_rank: np.ndarray, det_box: np.ndarray,
                               count[lo:hi])
             gt = gt_order[start + np.arange(len(det))]
             iou = pair_iou(det_box[det], gt_box[gt], gt_crowd[gt])
-            keep = iou >= min(IOU_THRESHOLDS[0], IOU_CAP)
+            keep = iou >= min(float(thresholds.min()), IOU_CAP)
             _greedy(det[keep], gt[keep], iou[keep], det_rank, det_slot, gt_crowd, gt_ignored,
-                    taken, matched, true_positive)
+                    taken, (matched, true_positive, taken_gt), thresholds)
     in_range = np.empty((n_area, n_det), dtype=bool)
-    in_range[:, det_slot] = ~area_ignored(det_box[:, 2] * det_box[:, 3])
-    return Matched(matched, true_positive, in_range, gt_ignored)
+    in_range[:, det_slot] = ~area_ignored(det_box[:, 2] * det_box[:, 3], area_ranges)
+    return Matched(matched, true_positive, in_range, gt_ignored, taken_gt)
 
 
 def _chunks(det_group: np.ndarray, count: np.ndarray) -> list[tuple[int, int]]:
@@ -128,13 +141,16 @@ def _chunks(det_group: np.ndarray, count: np.ndarray) -> list[tuple[int, int]]:
 
 def _greedy(det: np.ndarray, gt: np.ndarray, iou: np.ndarray, det_rank: np.ndarray,
             det_slot: np.ndarray, gt_crowd: np.ndarray, gt_ignored: np.ndarray,
-            taken: np.ndarray, matched: np.ndarray, true_positive: np.ndarray) -> None:
-    """Resolve candidate pairs `det, gt, iou [P]` rank by rank; updates `taken [A, T, G]`,
-    `matched` and `true_positive` `[A, T, E]` (at each detection's slot) in place."""
+            taken: np.ndarray, out: tuple[np.ndarray, np.ndarray, np.ndarray | None],
+            thresholds: np.ndarray) -> None:
+    """Resolve candidate pairs `det, gt, iou [P]` rank by rank at `thresholds [T]`; updates
+    `taken [A, T, G]` and `out` = (matched, true_positive, gt or None), each `[A, T, E]` (at
+    each detection's slot), in place."""
     if len(det) == 0:
         return
+    matched, true_positive, taken_gt = out
     n_area, n_thr = matched.shape[:2]
-    threshold = np.minimum(IOU_THRESHOLDS, IOU_CAP)[None, :, None]  # [1, T, 1]
+    threshold = np.minimum(thresholds, IOU_CAP)[None, :, None]  # [1, T, 1]
     rank = det_rank[det]
     order = np.lexsort((gt, iou, det, rank))
     det, gt, iou, rank = det[order], gt[order], iou[order], rank[order]
@@ -156,3 +172,5 @@ def _greedy(det: np.ndarray, gt: np.ndarray, iou: np.ndarray, det_rank: np.ndarr
         slot = det_slot[d[seg[s]]]
         matched[a, t, slot] = True
         true_positive[a, t, slot] = ~gt_ignored[a, g[pair]]
+        if taken_gt is not None:
+            taken_gt[a, t, slot] = g[pair]

@@ -3,7 +3,8 @@
 - hypotheses (`_hypotheses`): the checks of H box hypotheses and their score-weighted spread.
 - sources (`_sources`): the one dispatch from a covariance source name (`given`, `layers`,
   `hypotheses`, `none`) to the arrays it reads (`SOURCE_ARRAYS`) and the uncalibrated Σ it
-  gives (`source_covariance`); `layer_spread`, the spread across decoder layers.
+  gives (`source_covariance`); `layer_spread`, the spread across decoder layers (over any
+  parametrisation: `sample_spread`).
 - depth scaling (`_depth`, with its NLL `_depth_nll` on the log-distance grid `_depth_grid`,
   searched by `_depth_search`, over the eigen-decomposition of `_spectral`):
   `Σ' = Σ + k_c·d·I`, `DepthScaler`; its terms per detection (`DepthTerms`), their sums per
@@ -26,6 +27,7 @@ from calibrators.covariance._sources import (
     layer_spread,
     raw_covariances,
     resolve_cov_source,
+    sample_spread,
     source_arrays,
     source_covariance,
     source_inputs,
@@ -36,5 +38,6 @@ from calibrators.covariance._spectral import spectral, spectral_2x2
 __all__ = ["MANTISSA_BITS", "OCTAVES", "SOURCE_ARRAYS", "BinSums", "DepthScaler", "DepthTerms",
            "ShrinkageDepthScaler", "add_depth_term", "brent_k", "check_hypotheses", "depth_bins",
            "dim_indices", "fit_inputs", "hypotheses_covariance", "layer_spread", "log_bin",
-           "log_bin_low", "near_zero_q", "raw_covariances", "resolve_cov_source", "source_arrays",
-           "source_covariance", "source_inputs", "spectral", "spectral_2x2", "takes_phrase"]
+           "log_bin_low", "near_zero_q", "raw_covariances", "resolve_cov_source", "sample_spread",
+           "source_arrays", "source_covariance", "source_inputs", "spectral", "spectral_2x2",
+           "takes_phrase"]

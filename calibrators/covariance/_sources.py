@@ -49,8 +49,15 @@ def layer_spread(layer_boxes: np.ndarray, dims: Sequence[str] = ("x", "y")) -> n
     for j, name in enumerate(dims):
         if name == "yaw":
             values[:, :, j] = wrap_angle(values[:, :, j] - values[:, -1:, j])
+    return sample_spread(values)
+
+
+def sample_spread(values: np.ndarray) -> np.ndarray:
+    """Sample covariance (ddof=1) `[N, D, D]` of each row's `L >= 2` values `[N, L, D]`:
+    the spread across decoder layers, whatever the box parametrisation (`layer_spread` for the
+    9-field boxes; `calibrators.boxes2d.edge_covariance` for image-plane box edges)."""
     centred = values - values.mean(axis=1, keepdims=True)
-    return np.einsum("nli,nlj->nij", centred, centred) / (n_layers - 1)
+    return np.einsum("nli,nlj->nij", centred, centred) / (values.shape[1] - 1)
 
 
 def dim_indices(dims: Sequence[str]) -> list[int]:

@@ -21,6 +21,7 @@ from calibrators.metrics.intervals import (
     coverage_allowance,
     proportion_bounds,
 )
+from calibrators.metrics.localisation import LAECE_BINS, LocalisationECE, localisation_ece
 from calibrators.metrics.regions import (
     CoverageTable,
     EllipseCoverage,
@@ -42,10 +43,12 @@ from calibrators.metrics.scoring import brier_score, classification_nll
 
 __all__ = [
     "INTERVAL_CONFIDENCE",
+    "LAECE_BINS",
     "CalibrationCurve",
     "Coverage",
     "CoverageTable",
     "EllipseCoverage",
+    "LocalisationECE",
     "ReliabilityDiagram",
     "ResidualPlot",
     "average_calibration_curve",
@@ -59,6 +62,7 @@ __all__ = [
     "ellipse_coverage",
     "expected_calibration_error",
     "expected_mahalanobis",
+    "localisation_ece",
     "mahalanobis",
     "max_calibration_error",
     "mean_ellipse_area",

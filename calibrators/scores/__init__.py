@@ -20,6 +20,7 @@ from calibrators.scores._class_temperature import ClassTemperatureScaler
 from calibrators.scores._histogram import HistogramBinning
 from calibrators.scores._isotonic import IsotonicCalibrator
 from calibrators.scores._knots import KnotCalibrator, isotonic_knots, monotone_knots
+from calibrators.scores._logistic import fit_logistic
 from calibrators.scores._modulation import modulate_logits
 from calibrators.scores._platt import PlattScaler
 from calibrators.scores._probabilities import (
@@ -63,7 +64,7 @@ __all__ = ["D_WIDTH", "EXACT_ROWS", "SCORE_CALIBRATION_METHODS", "SIGMOID_BINS",
            "RANGE_Z_WIDTH", "Z_WIDTH",
            "ClassTemperatureScaler", "ClasswiseCalibrator", "HistogramBinning",
            "IsotonicCalibrator", "KnotCalibrator", "PlattScaler", "ScoreRows", "ScoreTable",
-           "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities",
+           "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities", "fit_logistic",
            "isotonic_knots", "label_logit", "label_scores", "make_score_calibrator",
            "modulate_logits", "monotone_knots", "predict", "probabilities_logits",
            "probability_logit", "row_max", "score_calibrator_from_dict", "sigmoid_nll",

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from calibrators.boxes2d import ConformalBoxes, PositionCalibrator
 from calibrators.core.errors import NotFittedError
 from calibrators.covariance import DepthScaler, ShrinkageDepthScaler
 from calibrators.regions import ConformalRegions
@@ -94,7 +95,36 @@ def _conformal_case() -> Case:
                 lambda est: est.radii(levels, np.r_[classes, 7], np.r_[dist, 200.0]))
 
 
+def _position_case() -> Case:
+    rng = np.random.default_rng(RNG_SEED)
+    n, c = 900, 3
+    labels = np.where(np.arange(n) < 10, 2, rng.integers(0, 2, n))   # class 2: pooled
+    z = rng.normal(0.0, 2.0, n)
+    feats = rng.random((n, 4))
+    tp = rng.random(n) < 1.0 / (1.0 + np.exp(-(0.8 * z + feats[:, 0] - feats[:, 3])))
+    return Case(PositionCalibrator, (z, labels, tp, c, feats),
+                lambda est: est.transform(z, labels, feats))
+
+
+def _box_regions_case(score: str) -> Case:
+    rng = np.random.default_rng(RNG_SEED)
+    n = 1200
+    xy, wh = rng.uniform(0, 500, (n, 2)), rng.uniform(4, 200, (n, 2))
+    boxes = np.column_stack([xy, wh])
+    sigma = 0.05 * np.repeat(wh, 2, axis=1) + 0.5
+    true = boxes + rng.normal(size=(n, 4)) * sigma * [1, 1, 0.5, 0.5]
+    true[:, 2:] = np.abs(true[:, 2:])
+    labels = np.where(np.arange(n) < 30, 2, rng.integers(0, 2, n))   # class 2: pooled
+    levels = (0.5, 0.9, 0.99)
+    return Case(lambda: ConformalBoxes(score=score, min_group=60),
+                (boxes, true, labels, None if score == "additive" else sigma),
+                lambda est: np.stack(est.regions(boxes[:50], labels[:50], sigma[:50], levels)))
+
+
 CASES = {
+    "position_2d": _position_case(),
+    "box_regions_additive": _box_regions_case("additive"),
+    "box_regions_scaled": _box_regions_case("scaled"),
     "temperature_sigmoid": _temperature_case("sigmoid"),
     "temperature_softmax": _temperature_case("softmax"),
     "class_temperature": _score_case(ClassTemperatureScaler),
