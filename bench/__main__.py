@@ -7,6 +7,7 @@ BENCHMARKS = (
     "bench.bench_stream_fit",
     "bench.bench_match",
     "bench.bench_coco_ap",
+    "bench.bench_box_regions",
     "bench.bench_detectors",
     "bench.bench_service",
     "bench.bench_health",
