@@ -5,26 +5,38 @@ activation or alias move by another worker process or a finished fit is seen by 
 request. Aliases are read on every lookup (one indexed read); active versions are kept until
 the store's commit marker moves (SQLite: any commit by anyone, `app.store.changes`), and read
 on every lookup where the store has no marker (Postgres).
+
+A stored profile is 3-D (`CalibrationProfile`) or 2-D (`calibrators.boxes2d.Profile2D`, parsed
+with a lazy import: the 3-D paths never load the 2-D library); its JSON's `kind` says which
+(`calibrators.core.vocab.profile_kind`). `resolve` hands out the kinds its caller serves, 3-D
+by default: any other is a 422 at the caller's `loc` saying what the profile is.
 """
 
 from __future__ import annotations
 
 import threading
 from dataclasses import dataclass, field
+from typing import Any
 
 from app.http.errors import RequestError
 from app.schemas.types import parse_profile_ref
 from app.store import NotFoundError, ProfileRecord, Store
-from calibrators.profile import CalibrationProfile
+from calibrators.core.vocab import PROFILE_KINDS
+from calibrators.profile import read_profile
+
+#: What the 3-D routes serve (`ProfileCache.resolve`'s default).
+THREE_D = ("3d",)
 
 
 @dataclass(frozen=True)
 class LoadedProfile:
-    """A stored profile version, its parsed CalibrationProfile and the `ProfileRef` body of
-    responses (built once: a calibrate response names its profile on every request)."""
+    """A stored profile version, its parsed profile (a `CalibrationProfile`, or a `Profile2D`
+    when `kind` is `boxes2d`) and the `ProfileRef` body of responses (built once: a calibrate
+    response names its profile on every request)."""
 
     record: ProfileRecord
-    profile: CalibrationProfile
+    profile: Any
+    kind: str = "3d"
     ref_body: dict[str, object] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -60,10 +72,18 @@ class ProfileCache:
         with self._lock:
             return list(self._cache.values())
 
-    def resolve(self, ref: str | None, default: str, loc: tuple[str, ...] = ("body", "profile")
-                ) -> LoadedProfile:
+    def resolve(self, ref: str | None, default: str, loc: tuple[str, ...] = ("body", "profile"),
+                kinds: tuple[str, ...] = THREE_D) -> LoadedProfile:
         """The profile for `name` (active version), `name@version` or `name@alias`; 404 if
-        unknown, 422 naming `loc` if `ref` is not a name or its version or alias is malformed."""
+        unknown, 422 naming `loc` if `ref` is not a name or its version or alias is malformed,
+        or if the profile is not of one of `kinds` (`PROFILE_KINDS`)."""
+        loaded = self._resolve(ref, default, loc)
+        if loaded.kind not in kinds:
+            raise RequestError(list(loc), kind_error(loaded, kinds),
+                               kind="value_error.profile_kind")
+        return loaded
+
+    def _resolve(self, ref: str | None, default: str, loc: tuple[str, ...]) -> LoadedProfile:
         try:
             name, number, alias = parse_profile_ref(default if ref is None else ref)
         except ValueError as exc:
@@ -99,7 +119,22 @@ class ProfileCache:
         if hit is not None:
             return hit
         record = self.store.get(name, version)
-        loaded = LoadedProfile(record, CalibrationProfile.from_json(record.json))
+        loaded = parse_record(record)
         with self._lock:
             self._cache[key] = loaded
         return loaded
+
+
+def parse_record(record: ProfileRecord) -> LoadedProfile:
+    """A stored version parsed as its kind says (`read_profile`; ValueError naming a bad
+    key)."""
+    profile = read_profile(record.json)
+    return LoadedProfile(record, profile, profile.kind)
+
+
+def kind_error(loaded: LoadedProfile, kinds: tuple[str, ...]) -> str:
+    """Why `loaded` cannot serve a route of `kinds`."""
+    what = {"3d": "a 3-D profile", "boxes2d": "a 2-D (boxes2d) profile"}
+    wanted = " or ".join(what[k] for k in kinds if k in PROFILE_KINDS)
+    return (f"profile {loaded.record.ref} is {what[loaded.kind]}; this route serves "
+            f"{wanted}")

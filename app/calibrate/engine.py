@@ -29,6 +29,7 @@ from app.schemas.nuscenes import NuScenesResults
 from app.store import NotFoundError
 from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.core.errors import FieldError
+from calibrators.core.vocab import PROFILE_KINDS
 from calibrators.io.arrow_batch import (
     ARROW_STREAM,
     LIBRARY_TO_COLUMN,
@@ -111,7 +112,13 @@ class CalibrateEngine:
         from_query = {"profile", "levels", "ellipse_confidence"} - parsed.model_fields_set
         try:
             loaded = self.cache.resolve(body.profile, self.default_profile,
-                                        loc=_where("profile", from_query))
+                                        loc=_where("profile", from_query), kinds=PROFILE_KINDS)
+            if loaded.kind != "3d" or body.frames is None:   # 2-D: loaded only when used
+                from app.calibrate.images2d import calibrate_images
+
+                given = body.model_fields_set
+                doc, n = calibrate_images(loaded, body, given, self.max_detections)
+                return CallOutcome(200, dumps_json(doc), loaded.record.name, n)
             check_classes(loaded, body.classes)
             rows = calibrate_frames(loaded, body.frames, body.ellipse_confidence,
                                     levels=body.levels, max_detections=self.max_detections)

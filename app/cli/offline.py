@@ -1,7 +1,8 @@
 """`detcal fit`, `detcal evaluate` and `detcal calibrate`: the calibration library offline.
 
 Inputs are a validation dump v1 (`.npz`) or a nuScenes results JSON with its ground-truth JSON
-(`--nuscenes-gt`). Heavy imports happen inside the handlers so `detcal --help` stays fast.
+(`--nuscenes-gt`), or for a 2-D profile a COCO results JSON with its instances (`--gt`,
+`app.cli.coco`). Heavy imports happen inside the handlers so `detcal --help` stays fast.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from app.cli.main import CliError
+from app.fitting.options import fit_option_specs, options_of
 from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE, MATCH_THRESHOLD
 from calibrators.fit import FitOptions
 
@@ -27,7 +29,7 @@ calibration, covariance scaling, regions: see the fit options), print the chosen
 each stage with its held-out score and the before/after table, and write the profile JSON. A
 Parquet dataset folder (detcal convert) is fit streamed, in bounded memory, with the thesis
 methods (temperature, depth, gaussian: pass --calibration 0 or name them), optionally on
-Dask (--dask)."""
+Dask (--dask). A COCO results JSON with --gt (its instances JSON) fits a 2-D profile."""
 
 EVALUATE_DESCRIPTION = """\
 nuScenes mAP / NDS, per-class AP, and calibration metrics (before, and after the profile if
@@ -36,7 +38,8 @@ one is given)."""
 CALIBRATE_DESCRIPTION = """\
 Apply a profile to an NPZ dump or a nuScenes results JSON and write a nuScenes results JSON
 with the calibrated detection_score and, as extra keys, the raw score, the calibrated
-covariance and the ellipses at --levels."""
+covariance and the ellipses at --levels; with a 2-D profile, a COCO results JSON into
+calibrated COCO results (score, score_raw, an inner and outer box per level)."""
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     """Add the `fit`, `evaluate` and `calibrate` subcommands."""
@@ -44,6 +47,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "fit", help="fit a calibration profile on a validation dump",
         description=FIT_DESCRIPTION)
     add_dump_input(fit)
+    fit.add_argument("--from", dest="source_format", metavar="FORMAT",
+                     help="coco: DUMP is a COCO results JSON and --gt its instances JSON (a "
+                          "2-D profile; a JSON list with --gt is read as COCO without it)")
+    fit.add_argument("--gt", metavar="INSTANCES.json", help="COCO instances of --from coco")
     fit.add_argument("--out", default="profile.json", help="profile JSON to write "
                      "(default: %(default)s)")
     add_fit_options(fit)
@@ -74,14 +81,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                           "at most 20 (default: %(default)s)")
     cal.add_argument("--nuscenes-gt", metavar="GT.json",
                      help="ground-truth JSON giving the frames' ego positions (results JSON)")
+    cal.add_argument("--gt", metavar="INSTANCES.json",
+                     help="2-D profile: the COCO instances of FILE's images (their sizes)")
     cal.add_argument("--out", default="-", help="output JSON (default: stdout)")
     cal.set_defaults(func=run_calibrate)
 
 
 def add_fit_options(parser: argparse.ArgumentParser) -> None:
-    """One flag per `FitOptions` field (`--min-score` for `min_score`), with its type, default,
-    choices and help: the same options, names and defaults as POST /v1/fit's form."""
-    for spec in FitOptions.describe():
+    """One flag per option of a 3-D or a COCO fit (`--min-score` for `min_score`;
+    `app.fitting.options`), with its type, default, choices and help: the same options, names
+    and defaults as POST /v1/fit's form."""
+    for spec in fit_option_specs():
         flag = "--" + spec.name.replace("_", "-")
         if spec.type is bool:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction,
@@ -92,10 +102,13 @@ def add_fit_options(parser: argparse.ArgumentParser) -> None:
                             help=text)
 
 
-def fit_options_of(args: argparse.Namespace) -> FitOptions:
-    """The `FitOptions` of parsed `add_fit_options` flags (ValueError naming a bad one)."""
-    return FitOptions.from_dict({spec.name: getattr(args, spec.name)
-                                 for spec in FitOptions.describe()})
+def fit_options_of(args: argparse.Namespace, coco: bool = False) -> Any:
+    """The `FitOptions` (or with `coco` the `FitOptions2D`) of parsed `add_fit_options` flags;
+    ValueError naming a bad one, or one the other kind of fit takes (set to a non-default)."""
+    specs = fit_option_specs()
+    values = {spec.name: getattr(args, spec.name) for spec in specs}
+    given = {spec.name for spec in specs if values[spec.name] != spec.default}
+    return options_of(values, given, coco)
 
 
 def add_dump_input(parser: argparse.ArgumentParser) -> None:
@@ -110,8 +123,11 @@ def add_dump_input(parser: argparse.ArgumentParser) -> None:
 # -- handlers --------------------------------------------------------------------------------
 def run_fit(args: argparse.Namespace) -> int:
     """`detcal fit`: fit, print the table, write the profile."""
+    from app.cli.coco import is_coco_fit, run_fit_coco
     from calibrators import ProfileReport, fit_profile, format_table
 
+    if is_coco_fit(args):
+        return run_fit_coco(args, fit_options_of(args, coco=True))
     options = fit_options_of(args)
     progress = None if args.quiet else _progress
     if Path(args.dump).is_dir():
@@ -121,7 +137,7 @@ def run_fit(args: argparse.Namespace) -> int:
             raise CliError("--dask needs a Parquet dataset folder (detcal convert DUMP OUT_DIR)")
         dump, sha = load_input(args.dump, args.nuscenes_gt)
         profile = fit_profile(dump, options, dump_sha256=sha, progress=progress)
-    _write_text(args.out, profile.to_json())
+    write_text(args.out, profile.to_json())
     print(format_table(ProfileReport.from_dict(profile.report)))
     print(stages_text(profile.report))
     print(f"wrote {args.out}: T = {profile.temperature:.4g}, pooled k = {profile.pooled_k:.4g}, "
@@ -183,8 +199,8 @@ def run_evaluate(args: argparse.Namespace) -> int:
     """`detcal evaluate`: mAP, per-class AP and calibration metrics."""
     from calibrators import apply_profile, evaluate, format_table, summarize
 
-    dump, _ = load_input(args.dump, args.nuscenes_gt)
     profile = load_profile(args.profile) if args.profile else None
+    dump, _ = load_input(args.dump, args.nuscenes_gt)
     summary = summarize(dump, profile, threshold=args.threshold)
     ev = evaluate(dump)
     ev_after = None
@@ -208,7 +224,14 @@ def run_calibrate(args: argparse.Namespace) -> int:
     from calibrators.io.nuscenes_batch import calibrated_document
 
     levels = _levels(args.levels)
-    profile = load_profile(args.profile)
+    profile = load_profile(args.profile, kinds=("3d", "boxes2d"))
+    if profile.kind == "boxes2d":
+        from app.cli.coco import run_calibrate_coco
+
+        return run_calibrate_coco(args, profile, levels)
+    if args.gt:
+        raise CliError("--gt names the COCO instances of a 2-D profile's input; a 3-D "
+                       "profile's nuScenes results take --nuscenes-gt")
     path = Path(args.file)
     if path.is_dir():
         batches, meta = _dump_batches(path, profile), None
@@ -219,7 +242,7 @@ def run_calibrate(args: argparse.Namespace) -> int:
     served = [_served(batch.calibrate, profile=profile, levels=levels) for batch in batches]
     doc = calibrated_document(served, {"profile": str(args.profile), "levels": levels,
                                        "ellipse_confidence": ELLIPSE_CONFIDENCE}, meta)
-    _write_text(args.out, json.dumps(doc, allow_nan=False))
+    write_text(args.out, json.dumps(doc, allow_nan=False))
     n = sum(map(len, served))
     print(f"detcal calibrate: {n} detections in {len(doc['results'])} frames calibrated with "
           f"{args.profile} ({profile.score_method}, {profile.cov_method}, "
@@ -319,15 +342,19 @@ def load_input(path: str, nuscenes_gt: str | None) -> tuple[Any, str]:
     return dump, hashlib.sha256(pair.encode()).hexdigest()
 
 
-def load_profile(path: str) -> Any:
-    """A CalibrationProfile from a JSON file (ValueError naming the bad key)."""
-    from calibrators.profile import CalibrationProfile
+def load_profile(path: str, kinds: tuple[str, ...] = ("3d",)) -> Any:
+    """A profile of one of `kinds` from a JSON file (`read_profile`: a CalibrationProfile, or
+    a 2-D `Profile2D`); a CliError naming the bad key or the kind this command lacks."""
+    from calibrators.profile import read_profile
 
-    text = _existing(path).read_bytes()
     try:
-        return CalibrationProfile.from_json(text)
+        profile = read_profile(_existing(path).read_bytes())
     except ValueError as exc:
         raise CliError(f"{path} is not a valid profile: {exc}") from None
+    if profile.kind not in kinds:
+        raise CliError(f"{path} is a {'2-D' if profile.kind == 'boxes2d' else '3-D'} profile; "
+                       f"this command reads {' and '.join(kinds)} profiles")
+    return profile
 
 
 def _existing(path: str) -> Path:
@@ -337,7 +364,7 @@ def _existing(path: str) -> Path:
     return p
 
 
-def _write_text(path: str, text: str) -> None:
+def write_text(path: str, text: str) -> None:
     """Write `text` to `path` atomically (`-` = stdout)."""
     if path == "-":
         sys.stdout.write(text + "\n")

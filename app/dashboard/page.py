@@ -245,8 +245,10 @@ def _bev_section(loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) 
 def render_page(*, version: str, status: dict[str, str], uptime_s: float,
                 requests: dict[str, float], names: list[NameSummary], default_name: str,
                 loaded: LoadedProfile | None, versions_html: str, report_html: str,
-                bev_html: str, jobs: list[JobRecord], health_html: str = "") -> str:
-    """The whole dashboard document."""
+                bev_html: str, jobs: list[JobRecord], health_html: str = "",
+                profile_note: str | None = None) -> str:
+    """The whole dashboard document; `profile_note` (HTML) stands for the active profile's
+    panel when its panels cannot be drawn (a 2-D profile)."""
     total = sum(requests.values())
     rate = total / max(uptime_s, 1e-9)
     status_cells = "".join(
@@ -262,7 +264,9 @@ def render_page(*, version: str, status: dict[str, str], uptime_s: float,
         f"<tr><td><code>{_e(j.id[:8])}</code></td><td>{_e(j.name)}</td><td>{_e(j.state)}</td>"
         f"<td>{j.progress:.0%}</td><td>{_num(j.profile_version)}</td>"
         f"<td>{_e(j.error or '')}</td></tr>" for j in jobs)
-    if loaded is None:
+    if profile_note is not None:
+        profile_html = profile_note
+    elif loaded is None:
         profile_html = (f"<p class='note'>No active profile named {_e(default_name)!s} yet: "
                         "upload a validation dump to <code>POST /v1/fit</code>.</p>")
     else:

@@ -27,6 +27,7 @@ from datetime import timedelta
 from pathlib import Path
 from typing import Any
 
+from app.fitting.coco import COCO_RESULTS_KIND, fit_job
 from app.fitting.datasets import DATASET_KIND, redact_paths, referenced_dataset
 from app.fitting.handoff import ParsedUploads
 from app.store import JobLostError, JobRecord, Store
@@ -207,8 +208,13 @@ class JobRunner:
 
     def _fit(self, job: JobRecord, progress: _Progress) -> Any:
         """The profile of `job`: its stored dump fit in memory, or its Parquet dataset (a
-        stored `app.fitting.datasets` reference) fit part by part."""
-        if self.store.dump_kind(job.dump_sha256) == DATASET_KIND:
+        stored `app.fitting.datasets` reference) fit part by part, or its COCO pair fit as a
+        2-D profile (`app.fitting.coco`)."""
+        kind = self.store.dump_kind(job.dump_sha256)
+        if kind == COCO_RESULTS_KIND:
+            pair = self.parsed.take((job.dump_sha256, job.gt_sha256))
+            return fit_job(self.store, job, pair, progress, self.max_dump_bytes)
+        if kind == DATASET_KIND:
             from calibrators.fit import fit_profile_stream
 
             path = referenced_dataset(self.datasets_dir, self.store.dump_path(job.dump_sha256))

@@ -19,6 +19,7 @@ from app.schemas.calibrate import (
     CalibrateRequest,
     CalibrateResponse,
 )
+from app.schemas.calibrate_2d import CalibrateResponse2D
 from app.schemas.calibrate_query import CalibrateQuery
 from app.schemas.nuscenes import NuScenesResults
 from app.schemas.types import ErrorResponse, ProfileRefText
@@ -49,7 +50,8 @@ _CALIBRATE_BODY = body_doc(register_body_model(CalibrateRequest))
 _CALIBRATE_BODY["requestBody"]["content"][ARROW_STREAM] = _BINARY
 
 
-@router.post("/calibrate", response_model=CalibrateResponse, openapi_extra=_CALIBRATE_BODY,
+@router.post("/calibrate", response_model=CalibrateResponse | CalibrateResponse2D,
+             openapi_extra=_CALIBRATE_BODY,
              responses={200: {"content": {ARROW_STREAM: _BINARY}},
                         406: {"model": ErrorResponse}})
 async def calibrate(
@@ -57,10 +59,11 @@ async def calibrate(
     query: Annotated[CalibrateQuery, Query()],
 ) -> Response:
     """Calibrate raw detections with the active (or a named) profile version: a JSON body
-    (`CalibrateRequest`), or an Arrow IPC stream of one detection per row answered with an
-    Arrow stream (columns in docs/api.md). Arrow bodies are answered by the same engine
-    below FastAPI's routing (`app.calibrate.arrow_route`); this route documents them and
-    serves JSON."""
+    (`CalibrateRequest`: `frames` for a 3-D profile, `images` for a 2-D one, answered with
+    `CalibrateResponse` or `CalibrateResponse2D`), or an Arrow IPC stream of one 3-D
+    detection per row answered with an Arrow stream (columns in docs/api.md). Arrow bodies
+    are answered by the same engine below FastAPI's routing (`app.calibrate.arrow_route`);
+    this route documents them and serves JSON."""
     body = await request.body()
     arrow = body_media(request, ARROW_STREAM) == ARROW_STREAM
     accept(request, ARROW_STREAM if arrow else "application/json")

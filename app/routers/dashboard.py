@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from html import escape
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Request
@@ -22,6 +23,7 @@ from app.feedback.health_document import health_document
 from app.http.deps import CacheDep, MetricsDep, SettingsDep, StoreDep
 from app.store import NotFoundError
 from calibrators import ProfileReport
+from calibrators.core.vocab import PROFILE_KINDS
 
 router = APIRouter(tags=["dashboard"])
 
@@ -40,14 +42,21 @@ def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: Sett
     before/after report and plots."""
     ok = store.ping()
     status = {"store": "ok" if ok else "unreachable"}
-    loaded = None
+    loaded = note = None
     try:
-        loaded = cache.resolve(settings.default_profile, settings.default_profile)
+        loaded = cache.resolve(settings.default_profile, settings.default_profile,
+                               kinds=PROFILE_KINDS)
         status["active profile"] = "ok"
     except (NotFoundError, ValueError) as exc:
         status["active profile"] = str(exc)
     status["readiness"] = "ready" if ok and loaded is not None else "not ready"
     report_html = bev_html = versions_html = health_html = ""
+    if loaded is not None and loaded.kind != "3d":   # a 2-D profile: no panels drawn yet
+        note = (f"<p><b>{escape(loaded.record.ref)}</b> · 2-D profile: panels not yet "
+                f"available (its report: <code>GET /v1/profiles/{escape(loaded.record.name)}/"
+                f"{loaded.record.version}</code>)</p>"
+                + versions_table(store.versions(loaded.record.name)))
+        loaded = None
     if loaded is not None:
         versions_html = versions_table(store.versions(loaded.record.name))
         health_html = health_section(health_document(store, loaded,
@@ -60,7 +69,7 @@ def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: Sett
         requests=metrics.request_totals(), names=store.names(),
         default_name=settings.default_profile, loaded=loaded, versions_html=versions_html,
         report_html=report_html, bev_html=bev_html, jobs=store.recent_jobs(8),
-        health_html=health_html)
+        health_html=health_html, profile_note=note)
     return HTMLResponse(page)
 
 

@@ -1,4 +1,5 @@
-"""POST /v1/fit: upload a validation dump (NPZ v1 or nuScenes results + GT JSON) and queue a fit."""
+"""POST /v1/fit: upload a validation dump (NPZ v1 or nuScenes results + GT JSON), or a COCO
+results + instances pair for a 2-D profile, and queue a fit."""
 
 from __future__ import annotations
 
@@ -10,7 +11,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, File, Form, UploadFile, status
 from fastapi.responses import JSONResponse
 
+from app.fitting.coco import check_pair_size, store_pair
 from app.fitting.datasets import DATASET_KIND, dataset_reference, open_dataset
+from app.fitting.options import options_of
 from app.fitting.uploads import check_declared, declared_npz, load_upload
 from app.http.deps import AdminIdDep, RunnerDep, SettingsDep, StoreDep
 from app.http.errors import RequestError
@@ -48,6 +51,11 @@ def fit(
     dump: Annotated[UploadFile, File(description="Validation dump v1 (NPZ).")] = None,
     results: Annotated[UploadFile, File(description="nuScenes results JSON.")] = None,
     gt: Annotated[UploadFile, File(description="Ground truth JSON for `results`.")] = None,
+    coco_results: Annotated[UploadFile, File(description="COCO results JSON of a 2-D "
+                                                         "detector (with `coco_gt`): fits a "
+                                                         "2-D profile.")] = None,
+    coco_gt: Annotated[UploadFile, File(description="COCO instances JSON for "
+                                                    "`coco_results`.")] = None,
     dataset: Annotated[str | None, Form(
         max_length=1024, description="A Parquet dataset (`detcal convert`) to fit in place "
                                      "and part by part: its path relative to "
@@ -58,11 +66,17 @@ def fit(
                                                "first version of a name always is).")] = False,
 ) -> JSONResponse:
     """Store the uploaded dump (content-addressed) and queue a fit job; 202 with its id."""
-    _check_forms(dump, results, gt, dataset)
+    coco = _check_forms(dump, results, gt, dataset, coco_results, coco_gt)
     profile_name = name or settings.default_profile
-    fit_options = _fit_options(options)
-    stored, gt_sha, parsed = _store_checked(store, settings, fit_options, dump, results, gt,
-                                            dataset)
+    fit_options = _fit_options(options, coco)
+    if coco:
+        check_pair_size(coco_results, coco_gt, settings.max_json_dump_bytes)
+        stored, gt_sha, parsed = store_pair(store, settings, fit_options,
+                                            coco_results.file,  # type: ignore[union-attr]
+                                            coco_gt.file)  # type: ignore[union-attr]
+    else:
+        stored, gt_sha, parsed = _store_checked(store, settings, fit_options, dump, results,
+                                                gt, dataset)
     if parsed is not None:   # the job fits this very parse (app.fitting.handoff)
         runner.parsed.put((stored.sha256, gt_sha), parsed)
     audit = AuditEntry("fit", profile_name, token, {"dump_sha256": stored.sha256,
@@ -77,18 +91,26 @@ def fit(
 
 
 def _check_forms(dump: UploadFile | None, results: UploadFile | None, gt: UploadFile | None,
-                 dataset: str | None) -> None:
-    """A 422 unless the request gives exactly one form of fit input."""
-    forms = (dump is not None) + (results is not None or gt is not None) + (dataset is not None)
-    if forms != 1 or (results is None) != (gt is None):
+                 dataset: str | None, coco_results: UploadFile | None,
+                 coco_gt: UploadFile | None) -> bool:
+    """A 422 unless the request gives exactly one form of fit input; whether it is the COCO
+    pair."""
+    coco = coco_results is not None or coco_gt is not None
+    forms = (dump is not None) + (results is not None or gt is not None) + \
+        (dataset is not None) + coco
+    if forms != 1 or (results is None) != (gt is None) \
+            or (coco_results is None) != (coco_gt is None):
         raise RequestError(["body"], "upload either `dump` (NPZ) or both `results` and `gt` "
-                                     "(nuScenes JSON), or name a `dataset`")
+                                     "(nuScenes JSON), or name a `dataset`, or upload both "
+                                     "`coco_results` and `coco_gt` (COCO JSON, a 2-D fit)")
+    return coco
 
 
-def _fit_options(options: FitForm) -> FitOptions:
-    """The form's fit options; a 422 at the option the library refuses."""
+def _fit_options(options: FitForm, coco: bool) -> Any:
+    """The form's options of a 3-D fit, or of a 2-D one for a COCO pair; a 422 at the option
+    the library refuses or that the other kind of fit takes."""
     try:
-        return FitOptions.from_dict(options.model_dump())
+        return options_of(options.model_dump(), set(options.model_fields_set), coco)
     except OptionError as exc:
         raise RequestError(["body", exc.field], str(exc)) from None
 

@@ -7,6 +7,7 @@ from fastapi import APIRouter, Response
 from app.http.deps import CacheDep, SettingsDep, StoreDep
 from app.schemas.liveness import Health, Readiness
 from app.store import NotFoundError
+from calibrators.core.vocab import PROFILE_KINDS
 
 router = APIRouter(tags=["health"])
 
@@ -29,7 +30,8 @@ def readyz(store: StoreDep, cache: CacheDep, settings: SettingsDep, response: Re
     checks["store"] = "ok" if ok else "unreachable"
     if ok:
         try:
-            loaded = cache.resolve(settings.default_profile, settings.default_profile)
+            loaded = cache.resolve(settings.default_profile, settings.default_profile,
+                                   kinds=PROFILE_KINDS)
             checks["profile"] = loaded.record.ref
         except NotFoundError as exc:
             ok, checks["profile"] = False, str(exc)

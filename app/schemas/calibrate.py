@@ -15,6 +15,7 @@ from pydantic import (
     model_validator,
 )
 
+from app.schemas.calibrate_2d import Image2DIn
 from app.schemas.types import Finite, Probability, ProfileRef, ProfileRefText
 from calibrators.core.defaults import DEFAULT_LEVELS, ELLIPSE_CONFIDENCE
 from calibrators.core.vocab import BOX_FIELDS, BOX_INDEX, REGION_METHODS
@@ -168,7 +169,8 @@ class FrameIn(BaseModel):
 
 
 class CalibrateRequest(BaseModel):
-    """Raw detections of one or more frames to calibrate with a stored profile."""
+    """Raw detections to calibrate with a stored profile: the `frames` of 3-D detections for a
+    3-D profile, or the `images` of 2-D detections for a 2-D (`boxes2d`) profile."""
 
     model_config = ConfigDict(extra="forbid", json_schema_extra={"examples": [{
         "profile": "lidar", "ellipse_confidence": 0.95, "levels": [0.5, 0.9, 0.95, 0.99],
@@ -184,7 +186,18 @@ class CalibrateRequest(BaseModel):
         None, description="Optional: your detector's classes in its logits' column order. When "
                           "given and not the profile's list, the request is a 422 saying what "
                           "differs (the columns would be read as other classes).")
-    frames: list[FrameIn] = Field(min_length=1)
+    frames: list[FrameIn] | None = Field(
+        None, min_length=1, description="3-D detections, per frame (a 3-D profile).")
+    images: list[Image2DIn] | None = Field(
+        None, min_length=1, description="2-D detections, per image (a 2-D profile: "
+                                        "docs/api.md, \"2-D profiles\").")
+
+    @model_validator(mode="after")
+    def _one_form(self) -> Self:
+        if (self.frames is None) == (self.images is None):
+            raise ValueError("give exactly one of `frames` (3-D detections, for a 3-D profile) "
+                             "and `images` (2-D detections, for a 2-D profile)")
+        return self
 
 
 _UNBOUNDED = ("Metres; null when the region is unbounded (a conformal level above n/(n + 1) of "

@@ -1,7 +1,8 @@
-"""The form fields of POST /v1/fit, built from the library's `FitOptions` (one definition).
+"""The form fields of POST /v1/fit, built from the library's `FitOptions` and `FitOptions2D`
+(one definition each; `app.fitting.options` joins them).
 
-Each option of `calibrators.FitOptions` becomes a form field with its type, default, allowed
-values and help text; the library validates the values (a bad one is a 422 naming the field).
+Each option becomes a form field with its type, default, allowed values and help text; the
+library validates the values (a bad one is a 422 naming the field).
 """
 
 from __future__ import annotations
@@ -10,7 +11,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, Field, create_model
 
-from calibrators.fit import FitOptions
+from app.fitting.options import fit_option_specs
 
 
 def _field(spec: Any) -> tuple[Any, Any]:
@@ -21,5 +22,6 @@ def _field(spec: Any) -> tuple[Any, Any]:
 
 
 FitForm: type[BaseModel] = create_model(
-    "FitForm", __doc__="Fit options (see FitOptions in docs/science.md).",
-    **{spec.name: _field(spec) for spec in FitOptions.describe()})
+    "FitForm", __doc__="Fit options (FitOptions in docs/science.md; a COCO pair's: "
+                       "FitOptions2D in docs/boxes2d.md).",
+    **{spec.name: _field(spec) for spec in fit_option_specs()})

@@ -42,11 +42,14 @@ class ProfileVersions(BaseModel):
 
 
 class ProfileDetail(VersionSummary):
-    """A version with its parameters and before/after report (the CalibrationProfile JSON)."""
+    """A version with its parameters and before/after report (the profile JSON)."""
 
     profile: dict[str, Any] = Field(description="CalibrationProfile JSON: temperature, depth_k, "
                                                 "pooled_k, classes, score_mode, cov_dims, "
-                                                "report, provenance, ...")
+                                                "report, provenance, ...; or, with `kind` "
+                                                "`boxes2d`, a 2-D profile (Profile2D JSON: "
+                                                "categories, score_calibration, regions, "
+                                                "report, provenance, ...)")
 
 
 class FitAccepted(BaseModel):

@@ -26,10 +26,20 @@ Calibration (docs/boxes2d.md):
   class × box size (`BoxRegions`).
 - `_coco_instances`, `_coco_read`, `_coco_write`: COCO results and instances files in, and
   calibrated COCO results out.
+
+A 2-D profile (docs/boxes2d.md, "A 2-D profile"):
+- `_fit_options`: `FitOptions2D`, every option of a 2-D fit.
+- `_score_fit`: the score stage, candidates chosen by held-out NLL (`ScoreStage2D`).
+- `_profile2d`: `Profile2D`, the fitted 2-D calibration as versioned JSON (`kind: boxes2d`).
+- `_fit2d`: `fit_profile_2d`, the fit: image splits, score stage, box regions, report
+  (`_fit_report`).
+- `_calibrate2d`: `calibrate_2d`, serving a profile (`Calibrated2D`).
+- `_synthetic`: `synthetic_coco`, a synthetic COCO validation set for tests and tours.
 """
 
 from calibrators.boxes2d._box_scores import BOX_SCORES, box_scores
 from calibrators.boxes2d._boxes import Detections2D, GroundTruth2D
+from calibrators.boxes2d._calibrate2d import Calibrated2D, calibrate_2d
 from calibrators.boxes2d._calibration_errors import (
     DECE_BINS,
     detection_ece_2d,
@@ -46,6 +56,9 @@ from calibrators.boxes2d._coco_write import coco_results, write_coco_results
 from calibrators.boxes2d._conformal_boxes import COCO_SIZE_EDGES, BoxRegions, ConformalBoxes
 from calibrators.boxes2d._edges import EDGE_NAMES, box_edges, edges_box
 from calibrators.boxes2d._features import BOX_FEATURES, box_features
+from calibrators.boxes2d._fit2d import check_fit_input_2d, fit_profile_2d
+from calibrators.boxes2d._fit_options import SCORE_METHODS_2D, FitOptions2D
+from calibrators.boxes2d._fit_report import REPORT_LEVELS
 from calibrators.boxes2d._iou import box_iou
 from calibrators.boxes2d._labels import MatchLabels, match_labels
 from calibrators.boxes2d._layer_spread import MIN_SIGMA, edge_covariance, edge_sigma
@@ -58,14 +71,19 @@ from calibrators.boxes2d._params import (
     STAT_NAMES,
 )
 from calibrators.boxes2d._position import PositionCalibrator
+from calibrators.boxes2d._profile2d import PROFILE_2D_VERSIONS, Profile2D
+from calibrators.boxes2d._score_fit import ScoreStage2D
 from calibrators.boxes2d._score_inputs import ScoreInputs, category_index, score_inputs
+from calibrators.boxes2d._synthetic import SYNTHETIC_CATEGORIES, synthetic_coco
 
 __all__ = ["AREA_LABELS", "AREA_RANGES", "BOX_FEATURES", "BOX_SCORES", "COCO_SIZE_EDGES",
-           "DECE_BINS", "EDGE_NAMES", "IOU_THRESHOLDS", "MAX_COCO_BYTES", "MAX_DETS",
-           "MIN_SIGMA", "RECALL_THRESHOLDS", "STAT_NAMES", "BoxRegions", "CocoEvaluation",
-           "CocoInstances", "ConformalBoxes", "Detections2D", "GroundTruth2D", "MatchLabels",
-           "PositionCalibrator", "ScoreInputs", "box_edges", "box_features", "box_iou",
-           "box_scores", "category_index", "coco_results", "detection_ece_2d",
-           "edge_covariance", "edge_sigma", "edges_box", "evaluate_coco",
-           "localisation_ece_2d", "match_labels", "parse_instances", "read_coco_instances",
-           "read_coco_results", "score_inputs", "write_coco_results"]
+           "DECE_BINS", "EDGE_NAMES", "IOU_THRESHOLDS", "MAX_COCO_BYTES", "MAX_DETS", "MIN_SIGMA",
+           "PROFILE_2D_VERSIONS", "RECALL_THRESHOLDS", "REPORT_LEVELS", "SCORE_METHODS_2D",
+           "STAT_NAMES", "SYNTHETIC_CATEGORIES", "BoxRegions", "Calibrated2D", "CocoEvaluation",
+           "CocoInstances", "ConformalBoxes", "Detections2D", "FitOptions2D", "GroundTruth2D",
+           "MatchLabels", "PositionCalibrator", "Profile2D", "ScoreInputs", "ScoreStage2D",
+           "box_edges", "box_features", "box_iou", "box_scores", "calibrate_2d", "category_index",
+           "check_fit_input_2d", "coco_results", "detection_ece_2d", "edge_covariance",
+           "edge_sigma", "edges_box", "evaluate_coco", "fit_profile_2d", "localisation_ece_2d",
+           "match_labels", "parse_instances", "read_coco_instances", "read_coco_results",
+           "score_inputs", "synthetic_coco", "write_coco_results"]

@@ -32,6 +32,22 @@ SCORE_METHODS: tuple[str, ...] = ("temperature", "class_temperature", "platt", "
 COV_METHODS: tuple[str, ...] = ("depth", "shrinkage")
 #: Uncertainty regions: χ²₂ radii of a Gaussian, or split-conformal radii per class × range.
 REGION_METHODS: tuple[str, ...] = ("gaussian", "conformal")
+#: What a stored profile calibrates: `3d` boxes (a `CalibrationProfile`, whose JSON has no
+#: `kind` key) or image-plane `boxes2d` (a `calibrators.boxes2d.Profile2D`, `"kind": "boxes2d"`).
+PROFILE_KINDS: tuple[str, ...] = ("3d", "boxes2d")
+
+
+def profile_kind(document: object) -> str:
+    """The `PROFILE_KINDS` entry of a decoded profile JSON document: its `kind` key, `3d`
+    when it has none (every profile written before 2-D profiles existed). ValueError for a
+    `kind` that is not one of them."""
+    if not isinstance(document, dict) or "kind" not in document:
+        return "3d"
+    kind = document["kind"]
+    if kind not in PROFILE_KINDS[1:]:
+        raise ValueError(f"profile kind must be one of {list(PROFILE_KINDS[1:])} (or absent "
+                         f"for a 3-D profile), got {kind!r}")
+    return str(kind)
 
 
 def check_dims(dims: str | Sequence[str]) -> tuple[str, ...]:

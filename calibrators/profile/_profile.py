@@ -147,6 +147,11 @@ class CalibrationProfile:
         self.__dict__.update(state, source_stages=MappingProxyType(state["source_stages"]))
 
     @property
+    def kind(self) -> str:
+        """`3d` (`calibrators.core.vocab.PROFILE_KINDS`; a 2-D profile is a `Profile2D`)."""
+        return "3d"
+
+    @property
     def score_method(self) -> str:
         """The served score calibration: `temperature` or a per-class method."""
         return self.score_calibrator[0]

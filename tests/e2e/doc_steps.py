@@ -76,8 +76,19 @@ def _nusc_from_val(workdir: Path, results: str, gt: str | None, frames: int | No
     save_nuscenes(dump, workdir / results, None if gt is None else workdir / gt)
 
 
+def _coco_pair(workdir: Path) -> None:
+    """docs/api.md's 2-D fit: a synthetic COCO results file and its instances."""
+    from calibrators.boxes2d import synthetic_coco
+
+    results, instances = synthetic_coco(n_images=400, seed=0)
+    (workdir / "coco_results.json").write_text(json.dumps(results))
+    (workdir / "coco_instances.json").write_text(json.dumps(instances))
+
+
 # Input files the doc examples read and no earlier step writes: name -> how to make it.
 INPUTS: dict[str, Callable[[Path], None]] = {
+    "coco_results.json": _coco_pair,
+    "coco_instances.json": _coco_pair,
     "val.npz": lambda w: shutil.copyfile(SHIPPED_DUMP, w / "val.npz"),
     "results_nusc.json": lambda w: _nusc_from_val(w, "results_nusc.json", None,
                                                   NUSC_SAMPLE_FRAMES),

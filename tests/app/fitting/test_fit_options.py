@@ -1,12 +1,15 @@
-"""One set of fit options: `detcal fit`, POST /v1/fit and the job runner all take FitOptions."""
+"""One set of fit options: `detcal fit`, POST /v1/fit and the job runner all take FitOptions
+(and, for a COCO pair, FitOptions2D: `app.fitting.options` joins the two)."""
 
 from __future__ import annotations
 
 import argparse
 
 from app.cli.offline import add_fit_options, fit_options_of
+from app.fitting.options import fit_option_specs
 from app.main import create_app
 from calibrators import FitOptions
+from calibrators.boxes2d import FitOptions2D
 from tests.app.conftest import ADMIN
 
 
@@ -19,8 +22,9 @@ def _parser() -> argparse.ArgumentParser:
 def test_cli_flags_are_the_fit_options_with_their_defaults():
     parser = _parser()
     flags = {a.dest: a for a in parser._actions if a.dest != "help"}
-    specs = {s.name: s for s in FitOptions.describe()}
-    assert set(flags) == set(specs)
+    specs = {s.name: s for s in fit_option_specs()}
+    assert set(flags) == set(specs) == {s.name for s in FitOptions.describe()} | {
+        s.name for s in FitOptions2D.describe()}
     for name, spec in specs.items():
         assert flags[name].default == spec.default, name
         assert flags[name].option_strings[0] == "--" + name.replace("_", "-")
@@ -28,11 +32,14 @@ def test_cli_flags_are_the_fit_options_with_their_defaults():
     args = parser.parse_args(["--modulation", "--dims", "x,y,yaw", "--min-score", "0.2"])
     assert fit_options_of(args) == FitOptions(modulation=True, dims=("x", "y", "yaw"),
                                               min_score=0.2)
+    args = parser.parse_args(["--score-method", "position", "--iou-threshold", "0.7"])
+    assert fit_options_of(args, coco=True) == FitOptions2D(score_method="position",
+                                                           iou_threshold=0.7)
 
 
 def test_fit_form_fields_are_the_fit_options_with_their_defaults(settings):
     schema = create_app(settings).openapi()["components"]["schemas"]["FitForm"]["properties"]
-    specs = {s.name: s for s in FitOptions.describe()}
+    specs = {s.name: s for s in fit_option_specs()}
     assert set(schema) == set(specs)
     for name, spec in specs.items():
         assert schema[name].get("default") == spec.default, name
@@ -54,7 +61,7 @@ def test_api_docs_list_every_fit_option_with_its_default():
 
     text = (Path(__file__).resolve().parents[3] / "docs" / "api.md").read_text()
     section = text[text.index("## POST /v1/fit"):text.index("## GET /v1/jobs")]
-    for spec in FitOptions.describe():
+    for spec in fit_option_specs():
         row = next((line for line in section.splitlines()
                     if line.startswith(f"| `{spec.name}` |")), None)
         assert row is not None, spec.name
