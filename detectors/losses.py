@@ -51,7 +51,7 @@ class Match(NamedTuple):
     gt: Tensor
 
 
-def _focal_cost(logits: Tensor, alpha: float = 0.25, gamma: float = 2.0) -> Tensor:
+def focal_cost(logits: Tensor, alpha: float = 0.25, gamma: float = 2.0) -> Tensor:
     """`[Q, C]` logits -> `[Q, C]` cost of assigning each query to each class (DETR3D)."""
     p = logits.sigmoid()
     neg = (1 - alpha) * p.pow(gamma) * -F.logsigmoid(-logits)
@@ -88,18 +88,22 @@ class HungarianMatcher:
                 empty = torch.zeros(0, dtype=torch.long)
                 matches.append(Match(empty, empty))
                 continue
-            cls = _focal_cost(logits[b])[:, target.labels]  # [Q, G]
+            cls = focal_cost(logits[b])[:, target.labels]  # [Q, G]
             gt = encode_boxes(target.boxes.to(encoded)) * weights
             if encoded.ndim == 4:
                 own = _group_boxes(encoded[b], target.labels, class_group)  # [Q, G, 10]
                 box = ((own * weights - gt[None]).abs()).sum(-1)
             else:
                 box = torch.cdist(encoded[b] * weights, gt, p=1)
-            cost = (self.cost_class * cls + self.cost_box * box).cpu().numpy()
-            q_idx, g_idx = linear_sum_assignment(np.nan_to_num(cost, nan=1e6))
-            matches.append(Match(torch.as_tensor(q_idx, dtype=torch.long),
-                                 torch.as_tensor(g_idx, dtype=torch.long)))
+            matches.append(assign(self.cost_class * cls + self.cost_box * box))
         return matches
+
+
+def assign(cost: Tensor) -> Match:
+    """Minimum-cost one-to-one assignment of a `[Q, G]` cost matrix (NaN costs 1e6)."""
+    q_idx, g_idx = linear_sum_assignment(np.nan_to_num(cost.detach().cpu().numpy(), nan=1e6))
+    return Match(torch.as_tensor(q_idx, dtype=torch.long),
+                 torch.as_tensor(g_idx, dtype=torch.long))
 
 
 def sigmoid_focal_loss(logits: Tensor, targets: Tensor, alpha: float = 0.25,

@@ -26,7 +26,7 @@ import time
 from collections.abc import Callable
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 import torch
@@ -129,7 +129,16 @@ class TrainResult:
     final_losses: dict[str, float]
 
 
-def learning_rate(cfg: TrainConfig, step: int) -> float:
+class Schedule(Protocol):
+    """What `learning_rate` reads of a training configuration (TrainConfig has it all)."""
+
+    lr: float
+    steps: int
+    warmup: int
+    min_lr_ratio: float
+
+
+def learning_rate(cfg: Schedule, step: int) -> float:
     """Linear warm-up over `warmup` steps, then cosine decay to `min_lr_ratio * lr`."""
     if step < cfg.warmup:
         return cfg.lr * (step + 1) / cfg.warmup
@@ -148,14 +157,15 @@ def _save_checkpoint(path: Path, model: Detector, opt: torch.optim.Optimizer, st
     tmp.replace(path)
 
 
-def _truncate_log(log: Path, step: int) -> None:
-    """Drop log rows after `step` (written after the checkpoint a resumed run restarts from)."""
+def truncate_log(log: Path, step: int, fields: tuple[str, ...] = LOG_FIELDS) -> None:
+    """Drop log rows after `step` (written after the checkpoint a resumed run restarts from);
+    `fields` are the log's columns."""
     if not log.exists():
         return
     with log.open() as f:
         rows = [r for r in csv.DictReader(f) if int(r["step"]) <= step]
     with log.open("w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=LOG_FIELDS)
+        writer = csv.DictWriter(f, fieldnames=fields)
         writer.writeheader()
         writer.writerows(rows)
 
@@ -291,7 +301,7 @@ def _resume(ckpt_path: Path, log_path: Path, cfg: TrainConfig, model: Detector,
     torch.set_rng_state(ckpt["torch_rng"])
     np.random.set_state(ckpt["numpy_rng"])
     start, elapsed = int(ckpt["step"]), float(ckpt["elapsed_s"])
-    _truncate_log(log_path, start)
+    truncate_log(log_path, start)
     return start, elapsed
 
 
