@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field
 from typing import Any
 
 from calibrators.boxes2d._box_scores import BOX_SCORES
 from calibrators.boxes2d._layer_spread import MIN_SIGMA
 from calibrators.core.errors import OptionError
 from calibrators.core.vocab import SCORE_METHODS, SCORE_MODES
-from calibrators.fit import OptionSpec
+from calibrators.fit import OptionSpec, describe_options, options_from_dict
 
 __all__ = ["SCORE_METHODS_2D", "FitOptions2D"]
 
@@ -103,21 +103,12 @@ class FitOptions2D:
     def from_dict(cls, data: dict[str, Any]) -> FitOptions2D:
         """Options from a dict of some or all fields (missing: defaults); an unknown key is an
         OptionError naming it."""
-        if not isinstance(data, dict):
-            raise OptionError("options", f"options must be an object, got {type(data).__name__}")
-        names = {f.name for f in fields(cls)}
-        for key in data:
-            if key not in names:
-                raise OptionError(str(key), f"unknown 2-D fit option {key!r}; known: "
-                                            f"{sorted(names)}")
-        return cls(**data)
+        return options_from_dict(cls, data, "2-D fit option")
 
     @classmethod
     def describe(cls) -> tuple[OptionSpec, ...]:
         """One `OptionSpec` per option, in declaration order (for CLI flags and form fields)."""
-        return tuple(OptionSpec(name=f.name, type=f.metadata["type"], default=f.default,
-                                choices=f.metadata["choices"], nullable=f.metadata["nullable"],
-                                help=f.metadata["help"]) for f in fields(cls))
+        return describe_options(cls)
 
 
 def _number(name: str, value: Any) -> float:

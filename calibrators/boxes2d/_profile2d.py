@@ -27,7 +27,7 @@ from typing import Any
 from calibrators.boxes2d._box_scores import BOX_SCORES
 from calibrators.boxes2d._conformal_boxes import ConformalBoxes
 from calibrators.boxes2d._score_fit import ScoreStage2D
-from calibrators.core.json_safe import to_jsonable
+from calibrators.core.json_safe import parse_json, to_jsonable
 from calibrators.core.vocab import SCORE_MODES, profile_kind
 
 __all__ = ["PROFILE_2D_VERSIONS", "Profile2D"]
@@ -144,11 +144,7 @@ class Profile2D:
     @classmethod
     def from_json(cls, text: str | bytes) -> Profile2D:
         """Parse and validate profile JSON; a ValueError names the offending key."""
-        try:
-            data = json.loads(text)
-        except (json.JSONDecodeError, UnicodeDecodeError, TypeError) as exc:
-            raise ValueError(f"profile is not valid JSON: {exc}") from None
-        return cls.from_dict(data)
+        return cls.from_dict(parse_json(text))
 
     @classmethod
     def from_dict(cls, data: Any) -> Profile2D:

@@ -9,6 +9,7 @@ value of no JSON type (a TypeError).
 
 from __future__ import annotations
 
+import json
 import math
 import numbers
 from typing import Any
@@ -70,3 +71,11 @@ def _non_finite(x: float, strict: bool, path: _Path) -> None:
 
 def _where(path: _Path) -> str:
     return f"at {''.join(f'[{k!r}]' for k in path)}: " if path else ""
+
+
+def parse_json(text: str | bytes, what: str = "profile") -> Any:
+    """`json.loads(text)`; a ValueError saying `what` is not valid JSON otherwise."""
+    try:
+        return json.loads(text)
+    except (json.JSONDecodeError, UnicodeDecodeError, TypeError) as exc:
+        raise ValueError(f"{what} is not valid JSON: {exc}") from None

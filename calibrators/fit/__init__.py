@@ -9,7 +9,12 @@ Parquet dataset (optionally on Dask).
 
 from calibrators.core.errors import OptionError
 from calibrators.fit._distributed import Mapper, dask_client, parse_dask_spec
-from calibrators.fit._options import FitOptions, OptionSpec
+from calibrators.fit._options import (
+    FitOptions,
+    OptionSpec,
+    describe_options,
+    options_from_dict,
+)
 from calibrators.fit._pipeline import check_fit_input, fit_profile
 from calibrators.fit._region_stage import CovarianceFit, RegionFit
 from calibrators.fit._score_stage import ScoreFit
@@ -17,5 +22,5 @@ from calibrators.fit._stream import check_stream_options, fit_profile_stream
 
 __all__ = ["CovarianceFit", "FitOptions", "Mapper", "OptionError", "OptionSpec", "RegionFit",
            "ScoreFit", "check_fit_input",
-           "check_stream_options", "dask_client", "fit_profile", "fit_profile_stream",
-           "parse_dask_spec"]
+           "check_stream_options", "dask_client", "describe_options", "fit_profile",
+           "fit_profile_stream", "options_from_dict", "parse_dask_spec"]

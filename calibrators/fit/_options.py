@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import asdict, dataclass, field, fields
-from typing import Any
+from typing import Any, TypeVar
 
 from calibrators.core.defaults import MATCH_THRESHOLD
 from calibrators.core.errors import OptionError
@@ -190,23 +190,12 @@ class FitOptions:
     def from_dict(cls, data: dict[str, Any]) -> FitOptions:
         """Options from a dict of some or all fields (missing: defaults); an unknown key is an
         OptionError naming it."""
-        if not isinstance(data, dict):
-            raise OptionError("options", f"options must be an object, got {type(data).__name__}")
-        names = {f.name for f in fields(cls)}
-        for key in data:
-            if key not in names:
-                raise OptionError(str(key), f"unknown fit option {key!r}; known: {sorted(names)}")
-        return cls(**data)
+        return options_from_dict(cls, data, "fit option")
 
     @classmethod
     def describe(cls) -> tuple[OptionSpec, ...]:
         """One `OptionSpec` per option, in declaration order (for CLI flags and form fields)."""
-        return tuple(OptionSpec(name=f.name, type=f.metadata["type"],
-                                default=",".join(f"{v:g}" if isinstance(v, float) else v
-                                                 for v in f.default)
-                                if isinstance(f.default, tuple) else f.default,
-                                choices=f.metadata["choices"], nullable=f.metadata["nullable"],
-                                help=f.metadata["help"]) for f in fields(cls))
+        return describe_options(cls)
 
 
 def _number(name: str, value: Any) -> float:
@@ -247,3 +236,29 @@ def _edges(value: Any) -> tuple[float, ...]:
         raise OptionError("distance_edges", f"distance_edges must increase from > 0 m: "
                                             f"{exc}") from None
     return edges
+
+
+_O = TypeVar("_O")
+
+
+def options_from_dict(cls: type[_O], data: Any, what: str) -> _O:
+    """The options dataclass `cls` from a dict of some or all of its fields (missing:
+    defaults); OptionError naming `options` for a non-dict, or an unknown key (a `what`)."""
+    if not isinstance(data, dict):
+        raise OptionError("options", f"options must be an object, got {type(data).__name__}")
+    names = {f.name for f in fields(cls)}   # type: ignore[arg-type]
+    for key in data:
+        if key not in names:
+            raise OptionError(str(key), f"unknown {what} {key!r}; known: {sorted(names)}")
+    return cls(**data)
+
+
+def describe_options(cls: type) -> tuple[OptionSpec, ...]:
+    """One `OptionSpec` per field of the options dataclass `cls` (declared with `_opt`), in
+    declaration order; a tuple default is written as its comma-separated text."""
+    return tuple(OptionSpec(name=f.name, type=f.metadata["type"],
+                            default=",".join(f"{v:g}" if isinstance(v, float) else v
+                                             for v in f.default)
+                            if isinstance(f.default, tuple) else f.default,
+                            choices=f.metadata["choices"], nullable=f.metadata["nullable"],
+                            help=f.metadata["help"]) for f in fields(cls))

@@ -25,6 +25,7 @@ import numpy as np
 
 import calibrators.profile._serialise as pf
 from calibrators.core.defaults import ELLIPSE_CONFIDENCE
+from calibrators.core.json_safe import parse_json
 from calibrators.core.version import detcal_version
 from calibrators.core.vocab import COV_SOURCES, SCORE_MODES
 from calibrators.covariance import dim_indices
@@ -189,11 +190,7 @@ class CalibrationProfile:
     @classmethod
     def from_json(cls, text: str | bytes) -> CalibrationProfile:
         """Parse and validate profile JSON; a ValueError names the offending key."""
-        try:
-            data = json.loads(text)
-        except (json.JSONDecodeError, UnicodeDecodeError, TypeError) as exc:
-            raise ValueError(f"profile is not valid JSON: {exc}") from None
-        return cls.from_dict(data)
+        return cls.from_dict(parse_json(text))
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> CalibrationProfile:
