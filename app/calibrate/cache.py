@@ -36,13 +36,17 @@ class LoadedProfile:
 
     record: ProfileRecord
     profile: Any
-    kind: str = "3d"
     ref_body: dict[str, object] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = self.record
         object.__setattr__(self, "ref_body", {"id": r.ref, "name": r.name,
                                               "version": r.version, "sha256": r.sha256})
+
+    @property
+    def kind(self) -> str:
+        """The profile's kind (`PROFILE_KINDS`): `3d` or `boxes2d`."""
+        return str(self.profile.kind)
 
     def ref(self) -> dict[str, object]:
         """The `ProfileRef` body of responses (a copy: callers may add to it)."""
@@ -128,8 +132,7 @@ class ProfileCache:
 def parse_record(record: ProfileRecord) -> LoadedProfile:
     """A stored version parsed as its kind says (`read_profile`; ValueError naming a bad
     key)."""
-    profile = read_profile(record.json)
-    return LoadedProfile(record, profile, profile.kind)
+    return LoadedProfile(record, read_profile(record.json))
 
 
 def kind_error(loaded: LoadedProfile, kinds: tuple[str, ...]) -> str:

@@ -177,11 +177,14 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     return replace(profile, report=report)
 
 
-def _light_pass(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper
+def _light_pass(ds: ParquetDataset, chunks: list[Chunk], mapper: Mapper, per_class: bool
                 ) -> tuple[int, tuple[float, float] | None]:
     """The fit rows, from the logits alone, and the range of the predicted logits the
     sigmoid bins span (None for softmax or when the fit rows are few enough to keep: module
-    docstring, step 2)."""
+    docstring, step 2); no pass (0, None) for softmax without per-class score tables, which
+    need neither."""
+    if ds.score_mode != "sigmoid" and not per_class:
+        return 0, None
     ranges = mapper.map(sigmoid_range, chunks)
     n_rows = sum(r[0] for r in ranges)
     if ds.score_mode == "sigmoid" and n_rows > SIGMOID_BINS:
@@ -211,8 +214,8 @@ def _first_passes(ds: ParquetDataset, held: np.ndarray, calib: np.ndarray | None
     rows and the true positives; the ValueErrors of `fit_profile` when nothing is left to
     fit on or nothing matched."""
     chunks = _chunks(ds, held, calib, opts)
-    n_rows, span = _light_pass(ds, chunks, mapper)
     per_class = candidate_names(opts.score_method, calib is not None) != ["temperature"]
+    n_rows, span = _light_pass(ds, chunks, mapper, per_class)
     if per_class:
         mode = "exact" if n_rows <= exact_rows else "grid"
         chunks = [replace(c, score_table=mode) for c in chunks]

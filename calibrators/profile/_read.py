@@ -4,9 +4,9 @@ profile_kind`) says whether it is a 3-D `CalibrationProfile` (no `kind` key) or 
 
 from __future__ import annotations
 
-import json
 from typing import Any
 
+from calibrators.core.json_safe import parse_json
 from calibrators.core.vocab import profile_kind
 from calibrators.profile._profile import CalibrationProfile
 
@@ -16,10 +16,7 @@ __all__ = ["read_profile"]
 def read_profile(text: str | bytes) -> Any:
     """The profile the JSON `text` holds, validated as its kind: a `CalibrationProfile` or a
     `Profile2D` (each has `kind`: `3d` or `boxes2d`); a ValueError names the bad key."""
-    try:
-        document = json.loads(text)
-    except (json.JSONDecodeError, UnicodeDecodeError, TypeError) as exc:
-        raise ValueError(f"profile is not valid JSON: {exc}") from None
+    document = parse_json(text)
     if profile_kind(document) == "boxes2d":
         from calibrators.boxes2d import Profile2D
 

@@ -11,7 +11,6 @@ import torch
 
 from detectors.boxer2d import (
     WEIGHTS_FILE,
-    Boxer2DConfig,
     Boxer2DTrainConfig,
     build_boxer2d,
     coco_ap,
@@ -22,11 +21,7 @@ from detectors.boxer2d import (
 )
 from detectors.boxer2d.boxes import generalized_iou
 from detectors.sim import CLASSES, make_image_frame
-
-
-def _tiny() -> Boxer2DConfig:
-    return Boxer2DConfig(classes=tuple(CLASSES), c1=8, c2=16, d_model=16, n_heads=2,
-                         d_ffn=32, n_decoder=2, n_queries=7)
+from tests.detectors.test_boxer2d_model import tiny_config
 
 
 def _cfg() -> Boxer2DTrainConfig:
@@ -39,11 +34,11 @@ def _state(path: Path) -> dict[str, torch.Tensor]:
 
 
 def test_training_is_deterministic_and_resumes_to_the_same_weights(tmp_path: Path) -> None:
-    a = train_boxer2d(_cfg(), tmp_path / "a", tmp_path / "a.pt", model_config=_tiny())
+    a = train_boxer2d(_cfg(), tmp_path / "a", tmp_path / "a.pt", model_config=tiny_config())
     assert a is not None
-    assert train_boxer2d(_cfg(), tmp_path / "b", tmp_path / "b.pt", model_config=_tiny(),
+    assert train_boxer2d(_cfg(), tmp_path / "b", tmp_path / "b.pt", model_config=tiny_config(),
                          stop_after=2) is None
-    b = train_boxer2d(_cfg(), tmp_path / "b", tmp_path / "b.pt", model_config=_tiny())
+    b = train_boxer2d(_cfg(), tmp_path / "b", tmp_path / "b.pt", model_config=tiny_config())
     sa, sb = _state(a), _state(b)  # type: ignore[arg-type]
     assert all(torch.equal(sa[k], sb[k]) for k in sa)
     rows = (tmp_path / "b" / "log.csv").read_text().splitlines()
@@ -51,7 +46,7 @@ def test_training_is_deterministic_and_resumes_to_the_same_weights(tmp_path: Pat
     with pytest.raises(ValueError, match="another run"):
         train_boxer2d(Boxer2DTrainConfig.recipe(steps=3, batch_size=1, warmup=1, lr=1e-2,
                                                 workers=0, threads=1),
-                      tmp_path / "b", None, model_config=_tiny())
+                      tmp_path / "b", None, model_config=tiny_config())
 
 
 def test_coco_dump_has_the_calibration_fields(tmp_path: Path) -> None:
