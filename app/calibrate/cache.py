@@ -36,17 +36,14 @@ class LoadedProfile:
 
     record: ProfileRecord
     profile: Any
+    kind: str = field(init=False)   # the profile's kind (`PROFILE_KINDS`), read once
     ref_body: dict[str, object] = field(init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         r = self.record
+        object.__setattr__(self, "kind", str(self.profile.kind))
         object.__setattr__(self, "ref_body", {"id": r.ref, "name": r.name,
                                               "version": r.version, "sha256": r.sha256})
-
-    @property
-    def kind(self) -> str:
-        """The profile's kind (`PROFILE_KINDS`): `3d` or `boxes2d`."""
-        return str(self.profile.kind)
 
     def ref(self) -> dict[str, object]:
         """The `ProfileRef` body of responses (a copy: callers may add to it)."""
