@@ -1,6 +1,6 @@
-"""Conformal box regions: `calibrators.boxes2d.ConformalBoxes` (additive, scaled) against
-puncc's `SplitBoxWise` (additive, multiplicative), fit on the same calibration pairs and
-measured on the same disjoint test pairs, in the same run.
+"""Conformal box regions: `calibrators.boxes2d.ConformalBoxes` (additive, scaled, adaptive)
+against puncc's `SplitBoxWise` (additive, multiplicative), fit on the same calibration pairs
+and measured on the same disjoint test pairs, in the same run.
 
 Data: matched (detected box, true box) pairs, the images split by a seeded hash of their id
 into calibration and test.
@@ -15,12 +15,18 @@ into calibration and test.
   and u ~ lognormal(0, 0.35) is a per-detection difficulty that the box size does not tell.
   Six decoder-layer boxes scatter around the detection with that σ, so the σ the scaled
   score reads (`edge_sigma` of the layers) is the true one up to its sampling noise (~30 %).
-  The errors are symmetric and unbiased (see the sign note below).
+  The errors are symmetric and unbiased (see the sign note below). The score is drawn
+  uniformly: it says nothing about the box's error here.
+  (`bench/_box_pairs.py`.)
 
 Methods, each fit on the calibration pairs only:
 
 - `ConformalBoxes(score="additive" | "scaled")`, default groups (class × COCO size bin), at
   q = 0.9 and 0.95;
+- `ConformalBoxes adaptive`, as a 2-D profile fit serves it by default: the calibration pairs
+  split in two by image (seeded hash), `EdgeErrorScale` fit on one half (box extent, score,
+  the layers' spread when given, image border), the scaled score's radii on the other; so it
+  uses exactly the pairs the others use;
 - puncc `SplitBoxWise(BasePredictor(identity, is_trained=True), method="additive" |
   "multiplicative")`, `fit(X_calib=detected, y_calib=true)` and `predict(X_test,
   alpha=1 - q)`, the boxes as x1, y1, x2, y2 and the default Bonferroni correction (each
@@ -41,8 +47,12 @@ Measured on the test pairs, the same way for every method:
   certifies at q;
 - outer coverage: the true box inside the outer box (puncc's `object_detection_mean_coverage`):
   what `SplitBoxWise` certifies at q;
-- area: the mean area of the outer box, px² (puncc's `object_detection_mean_area(box_outer)`);
-  its ratio to the mean detected-box area; and our area / SplitBoxWise's at the same nominal q.
+- outer area: the mean area of the outer box, px² (puncc's
+  `object_detection_mean_area(box_outer)`); its ratio to the mean detected-box area; and ours
+  over SplitBoxWise's at the same nominal q. It includes the detected box itself, which no
+  method can shrink: on small boxes it hides most of the difference between methods;
+- region area: the mean area between the inner and the outer box (outer minus inner, an empty
+  inner box counting 0), px²: the area where the true box's edges may lie.
 
 Run (puncc is installed only in the bench environment, pinned in
 bench/requirements-reference.txt, never in .venv):
@@ -64,49 +74,14 @@ from typing import Any
 
 import numpy as np
 
-from calibrators.boxes2d import (
-    COCO_SIZE_EDGES,
-    ConformalBoxes,
-    box_edges,
-    edge_covariance,
-    edge_sigma,
-    match_labels,
-    read_coco_instances,
-    read_coco_results,
-)
+from bench._box_pairs import Pairs, calibration_split, coco_pairs, synthetic_pairs
+from calibrators.boxes2d import COCO_SIZE_EDGES, ConformalBoxes, EdgeErrorScale, box_edges
 
 LEVELS = (0.9, 0.95)
 SIZE_NAMES = ("small", "medium", "large")
 MISSING_PUNCC = ("puncc is not installed here: install the bench environment: make bench "
                  "(puncc is pinned in bench/requirements-reference.txt and is installed only "
                  "into .bench-venv, never into .venv)")
-
-# The synthetic classes: frequency, size range sqrt(w·h) (px, log-uniform), aspect w/h, and
-# the noise slope k of σ = u·(0.5 + k·w).
-SYNTHETIC_CLASSES = (
-    (1, 0.45, (12.0, 400.0), 1.5, 0.05),
-    (2, 0.30, (8.0, 300.0), 0.4, 0.08),
-    (3, 0.15, (16.0, 250.0), 1.0, 0.10),
-    (4, 0.10, (20.0, 400.0), 1.2, 0.04),
-)
-WIDTH, HEIGHT = 640.0, 480.0
-
-
-@dataclass(frozen=True)
-class Pairs:
-    """Matched true positives: detected and true COCO boxes `[M, 4]`, class `[M]`, image id
-    `[M]`, σ per edge `[M, 4]` (None without decoder layers)."""
-
-    det: np.ndarray
-    true: np.ndarray
-    labels: np.ndarray
-    image_id: np.ndarray
-    sigma: np.ndarray | None
-
-    def take(self, rows: np.ndarray) -> Pairs:
-        return Pairs(self.det[rows], self.true[rows], self.labels[rows], self.image_id[rows],
-                     None if self.sigma is None else self.sigma[rows])
-
 
 @dataclass(frozen=True)
 class Result:
@@ -119,72 +94,27 @@ class Result:
     outer: np.ndarray
 
 
-def synthetic_pairs(n_images: int = 6000, per_image: float = 4.0, layers: int = 6,
-                    seed: int = 0) -> Pairs:
-    """The seeded synthetic set of the module docstring."""
-    rng = np.random.default_rng(seed)
-    counts = rng.poisson(per_image, n_images)
-    image_id = np.repeat(np.arange(1, n_images + 1), counts)
-    m = len(image_id)
-    cls = rng.choice(len(SYNTHETIC_CLASSES), m, p=[c[1] for c in SYNTHETIC_CLASSES])
-    lo = np.array([c[2][0] for c in SYNTHETIC_CLASSES])[cls]
-    hi = np.array([c[2][1] for c in SYNTHETIC_CLASSES])[cls]
-    aspect = np.array([c[3] for c in SYNTHETIC_CLASSES])[cls] * np.exp(rng.normal(0, 0.2, m))
-    k = np.array([c[4] for c in SYNTHETIC_CLASSES])[cls]
-    size = np.exp(rng.uniform(np.log(lo), np.log(hi)))
-    w, h = size * np.sqrt(aspect), size / np.sqrt(aspect)
-    xy = rng.uniform(0, 1, (m, 2)) * np.maximum(np.c_[WIDTH - w, HEIGHT - h], 1.0)
-    true = np.c_[xy, w, h]
-    u = np.exp(rng.normal(0, 0.35, m))
-    sig = u[:, None] * (0.5 + k[:, None] * np.c_[w, h, w, h])         # x1, y1, x2, y2
-    dof = 5.0
-    err = rng.standard_t(dof, (m, 4)) / np.sqrt(dof / (dof - 2)) * sig
-    edges = box_edges(true) + err
-    edges[:, 2:] = np.maximum(edges[:, 2:], edges[:, :2] + 1.0)       # at least 1 px wide
-    det = np.c_[edges[:, :2], edges[:, 2:] - edges[:, :2]]
-    # decoder layers around the detection (the last layer is the detection itself)
-    layer_edges = edges[:, None, :] + rng.normal(0, 1, (m, layers, 4)) * sig[:, None, :]
-    layer_edges[:, -1] = edges
-    layer_edges[..., 2:] = np.maximum(layer_edges[..., 2:], layer_edges[..., :2] + 1e-3)
-    layer_boxes = np.concatenate([layer_edges[..., :2],
-                                  layer_edges[..., 2:] - layer_edges[..., :2]], axis=-1)
-    sigma = edge_sigma(edge_covariance(layer_boxes, min_sigma=1.0))
-    labels = np.array([c[0] for c in SYNTHETIC_CLASSES])[cls]
-    return Pairs(det, true, labels, image_id, sigma)
-
-
-def coco_pairs(results: str, instances: str, iou: float = 0.5) -> Pairs:
-    """The true positives of a COCO results file against its instances (IoU `iou`)."""
-    gt = read_coco_instances(instances)
-    found = read_coco_results(results, instances=gt)
-    labels = match_labels(found, gt.ground_truth, iou_threshold=iou)
-    tp = labels.true_positive & ~labels.ignored
-    det = found.bbox[tp]
-    keep = (det[:, 2] > 0) & (det[:, 3] > 0)    # the multiplicative score divides by w, h
-    rows = np.flatnonzero(tp)[keep]
-    sigma = None
-    if found.layer_boxes is not None and found.layer_boxes.shape[1] >= 2:
-        sigma = edge_sigma(edge_covariance(found.layer_boxes[rows], min_sigma=1.0))
-    return Pairs(found.bbox[rows], gt.ground_truth.bbox[labels.gt_row[rows]],
-                 found.category_id[rows], found.image_id[rows], sigma)
-
-
-def calibration_split(image_id: np.ndarray, seed: int, fraction: float = 0.5) -> np.ndarray:
-    """Boolean `[M]`: the pair's image is in the calibration split, by a seeded hash
-    (splitmix64) of the image id, so every box of an image falls on the same side."""
-    with np.errstate(over="ignore"):
-        z = np.asarray(image_id).astype(np.uint64) + np.uint64(seed) * np.uint64(
-            0x9E3779B97F4A7C15)
-        z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
-        z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
-        z = z ^ (z >> np.uint64(31))
-    return (z >> np.uint64(11)).astype(np.float64) / float(1 << 53) < fraction
-
-
 def run_ours(cal: Pairs, test: Pairs, score: str) -> list[Result]:
     model = ConformalBoxes(score=score).fit(cal.det, cal.true, cal.labels, cal.sigma)
     inner, outer = model.regions(test.det, test.labels, test.sigma, LEVELS)
     return [Result(f"ConformalBoxes {score}", q, None, box_edges(inner[:, i]),
+                   box_edges(outer[:, i])) for i, q in enumerate(LEVELS)]
+
+
+def run_adaptive(cal: Pairs, test: Pairs, seed: int) -> list[Result]:
+    """The adaptive regions: `EdgeErrorScale` on half of the calibration pairs' images, the
+    radii of the scaled score on the other half."""
+    half = calibration_split(cal.image_id, seed + 1)
+    fit, radii = cal.take(half), cal.take(~half)
+    scale = EdgeErrorScale().fit(fit.det, fit.true, fit.score, fit.spread, fit.image_size)
+
+    def sigma(p: Pairs) -> np.ndarray:
+        return scale.predict(p.det, p.score, p.spread, p.image_size)
+
+    model = ConformalBoxes(score="scaled").fit(radii.det, radii.true, radii.labels,
+                                               sigma(radii))
+    inner, outer = model.regions(test.det, test.labels, sigma(test), LEVELS)
+    return [Result("ConformalBoxes adaptive", q, None, box_edges(inner[:, i]),
                    box_edges(outer[:, i])) for i, q in enumerate(LEVELS)]
 
 
@@ -258,6 +188,13 @@ def outer_area(r: Result) -> np.ndarray:
     return (r.outer[:, 2] - r.outer[:, 0]) * (r.outer[:, 3] - r.outer[:, 1])
 
 
+def region_area(r: Result) -> np.ndarray:
+    """The area between the inner and the outer box, px² (an empty inner box counts 0)."""
+    inner = np.clip(r.inner[:, 2] - r.inner[:, 0], 0, None) * np.clip(
+        r.inner[:, 3] - r.inner[:, 1], 0, None)
+    return outer_area(r) - inner
+
+
 def size_bins(det: np.ndarray) -> np.ndarray:
     """COCO small / medium / large (0, 1, 2) of the detected box's sqrt(w·h), as
     ConformalBoxes bins it."""
@@ -311,6 +248,7 @@ def main(argv: list[str] | None = None) -> None:
         results += run_ours(cal, test, "scaled")
     else:
         print("no decoder-layer boxes: ConformalBoxes scaled is left out")
+    results += run_adaptive(cal, test, args.seed)
     from importlib.metadata import version
 
     puncc = {method: fit_puncc(cal, method) for method in ("additive", "multiplicative")}
@@ -325,19 +263,21 @@ def main(argv: list[str] | None = None) -> None:
     det_area = float(np.mean(test.det[:, 2] * test.det[:, 3]))
     n = len(test.det)
     stats = {(r.method, r.level): (joint_covered(r, true_edges), outer_covered(r, true_edges),
-                                   float(np.mean(outer_area(r)))) for r in results}
+                                   float(np.mean(outer_area(r))), float(np.mean(region_area(r))))
+             for r in results}
     methods = list(dict.fromkeys(r.method for r in results))
     alphas = {(r.method, r.level): r.alpha for r in results}
 
     main_rows = ["| method | q | alpha passed | joint coverage | outer coverage | mean outer "
-                 "area (px²) | × detected area |", "|---|---|---|---|---|---|---|"]
+                 "area (px²) | × detected area | mean region area (px²) |",
+                 "|---|---|---|---|---|---|---|---|"]
     for q in LEVELS:
         for m in methods:
-            joint, outer, area = stats[(m, q)]
+            joint, outer, area, band = stats[(m, q)]
             alpha = alphas[(m, q)]
             main_rows.append(f"| {m} | {q:g} | {'' if alpha is None else f'{alpha:g}'} | "
                              f"{joint.mean():.3f} | {outer.mean():.3f} | {_fmt_area(area)} | "
-                             f"{area / det_area:.2f} |")
+                             f"{area / det_area:.2f} | {_fmt_area(band)} |")
 
     refs = [m for m in methods if m.startswith("SplitBoxWise")]
     ours = [m for m in methods if m.startswith("ConformalBoxes")]
@@ -346,17 +286,19 @@ def main(argv: list[str] | None = None) -> None:
     for q in LEVELS:
         for m in ours:
             ratio_rows.append(f"| {q:g} | {m} | " + " | ".join(
-                _ratio(stats[(m, q)][2], stats[(r, q)][2]) for r in refs) + " |")
+                f"{_ratio(stats[(m, q)][2], stats[(r, q)][2])} / "
+                f"{_ratio(stats[(m, q)][3], stats[(r, q)][3])}" for r in refs) + " |")
 
     # SplitBoxWise at the alpha that reaches, on the same test pairs, the coverage ours reached
     matched_rows = ["| q | ours | joint coverage | " + " | ".join(
-        f"SplitBoxWise {m}: alpha, joint cov., ours / its area" for m in puncc) +
+        f"SplitBoxWise {m}: alpha, joint cov., ours / its outer, region area" for m in puncc) +
         " | outer coverage | " + " | ".join(
-        f"SplitBoxWise {m}: alpha, outer cov., ours / its area" for m in puncc) + " |",
+        f"SplitBoxWise {m}: alpha, outer cov., ours / its outer, region area" for m in puncc)
+        + " |",
         "|---|---|---|" + "---|" * len(puncc) + "---|" + "---|" * len(puncc)]
     for q in LEVELS:
         for m in ours:
-            joint, outer, area = stats[(m, q)]
+            joint, outer, area, band = stats[(m, q)]
             cells = [f"{joint.mean():.3f}"]
             for covered, target in ((joint_covered, joint.mean()), (outer_covered,
                                                                      outer.mean())):
@@ -365,7 +307,8 @@ def main(argv: list[str] | None = None) -> None:
                 for model in puncc.values():
                     alpha, r = matched_alpha(model, test, len(cal.det), covered, target)
                     cells.append(f"{alpha:.4f}, {covered(r, true_edges).mean():.3f}, "
-                                 f"{_ratio(area, float(np.mean(outer_area(r))))}")
+                                 f"{_ratio(area, float(np.mean(outer_area(r))))}, "
+                                 f"{_ratio(band, float(np.mean(region_area(r))))}")
             matched_rows.append(f"| {q:g} | {m} | " + " | ".join(cells) + " |")
 
     def group_table(title: str, keys: np.ndarray, names: list[tuple[Any, str]]) -> list[str]:
@@ -375,7 +318,7 @@ def main(argv: list[str] | None = None) -> None:
                 "|---|---|" + "---|" * len(shown)]
         for q in LEVELS:
             for m in methods:
-                joint, outer, _ = stats[(m, q)]
+                joint, outer = stats[(m, q)][:2]
                 rows.append(f"| {m} | {q:g} | " + " | ".join(
                     f"{joint[keys == k].mean():.3f} / {outer[keys == k].mean():.3f}"
                     for k, _ in shown) + " |")
@@ -396,10 +339,13 @@ def main(argv: list[str] | None = None) -> None:
         "",
         "Joint coverage: every true edge between the inner and the outer box "
         "(`ConformalBoxes`' guarantee at q). Outer coverage: the true box inside the outer box "
-        "(`SplitBoxWise`'s guarantee at q, puncc's `object_detection_mean_coverage`). Area: "
-        "the mean outer-box area over the test true positives, px² (puncc's "
+        "(`SplitBoxWise`'s guarantee at q, puncc's `object_detection_mean_coverage`). Outer "
+        "area: the mean outer-box area over the test true positives, px² (puncc's "
         "`object_detection_mean_area(box_outer)`), the same for every method; × detected "
-        f"area: over the mean detected-box area ({det_area:,.0f} px²). 'alpha/2': "
+        f"area: over the mean detected-box area ({det_area:,.0f} px²). Region area: the mean "
+        "area between the inner and the outer box (an empty inner box counts 0): where the "
+        "true box's edges may lie. `ConformalBoxes adaptive` fits its edge-error scale on "
+        "half of the calibration pairs' images and its radii on the other half. 'alpha/2': "
         "`SplitBoxWise` called at `alpha = (1 - q)/2`, which bounds all eight one-sided edge "
         "misses by (1 - q)/8 and so certifies the same joint two-sided event as "
         f"`ConformalBoxes` at q. Test-sampling standard error of a coverage near q: "
@@ -407,13 +353,13 @@ def main(argv: list[str] | None = None) -> None:
         "",
         *main_rows,
         "",
-        "Our mean outer area over SplitBoxWise's, same nominal q:",
+        "Our mean outer / region area over SplitBoxWise's, same nominal q:",
         "",
         *ratio_rows,
         "",
         "At equal achieved coverage: SplitBoxWise at the largest alpha whose coverage on the "
         "same test pairs is at least ours (bisection on alpha; chosen on the test set, so "
-        "this favours the reference), and our mean outer area over its:",
+        "this favours the reference), and our mean outer and region area over its:",
         "",
         *matched_rows,
         "",

@@ -23,7 +23,8 @@ Calibration (docs/boxes2d.md):
   calibration with box-position terms.
 - `_layer_spread`: `edge_covariance`, the covariance of the box edges across decoder layers.
 - `_box_scores`, `_conformal_boxes`: `ConformalBoxes`, split-conformal inner / outer boxes per
-  class × box size (`BoxRegions`).
+  class × box size (`BoxRegions`); `_error_scale`: `EdgeErrorScale`, the fitted scale of
+  each edge's error that adaptive regions divide by.
 - `_coco_instances`, `_coco_read`, `_coco_write`: COCO results and instances files in, and
   calibrated COCO results out.
 
@@ -37,7 +38,7 @@ A 2-D profile (docs/boxes2d.md, "A 2-D profile"):
 - `_synthetic`: `synthetic_coco`, a synthetic COCO validation set for tests and tours.
 """
 
-from calibrators.boxes2d._box_scores import BOX_SCORES, box_scores
+from calibrators.boxes2d._box_scores import BOX_SCORES, REGION_SCORES, box_scores
 from calibrators.boxes2d._boxes import Detections2D, GroundTruth2D
 from calibrators.boxes2d._calibrate2d import Calibrated2D, calibrate_2d
 from calibrators.boxes2d._calibration_errors import (
@@ -55,8 +56,9 @@ from calibrators.boxes2d._coco_read import (
 from calibrators.boxes2d._coco_write import coco_results, write_coco_results
 from calibrators.boxes2d._conformal_boxes import COCO_SIZE_EDGES, BoxRegions, ConformalBoxes
 from calibrators.boxes2d._edges import EDGE_NAMES, box_edges, edges_box
+from calibrators.boxes2d._error_scale import EdgeErrorScale
 from calibrators.boxes2d._features import BOX_FEATURES, box_features
-from calibrators.boxes2d._fit2d import check_fit_input_2d, fit_profile_2d
+from calibrators.boxes2d._fit2d import MIN_SCALE_FIT, check_fit_input_2d, fit_profile_2d
 from calibrators.boxes2d._fit_options import SCORE_METHODS_2D, FitOptions2D
 from calibrators.boxes2d._fit_report import REPORT_LEVELS
 from calibrators.boxes2d._iou import box_iou
@@ -77,10 +79,11 @@ from calibrators.boxes2d._score_inputs import ScoreInputs, category_index, score
 from calibrators.boxes2d._synthetic import SYNTHETIC_CATEGORIES, synthetic_coco
 
 __all__ = ["AREA_LABELS", "AREA_RANGES", "BOX_FEATURES", "BOX_SCORES", "COCO_SIZE_EDGES",
-           "DECE_BINS", "EDGE_NAMES", "IOU_THRESHOLDS", "MAX_COCO_BYTES", "MAX_DETS", "MIN_SIGMA",
-           "PROFILE_2D_VERSIONS", "RECALL_THRESHOLDS", "REPORT_LEVELS", "SCORE_METHODS_2D",
-           "STAT_NAMES", "SYNTHETIC_CATEGORIES", "BoxRegions", "Calibrated2D", "CocoEvaluation",
-           "CocoInstances", "ConformalBoxes", "Detections2D", "FitOptions2D", "GroundTruth2D",
+           "DECE_BINS", "EDGE_NAMES", "IOU_THRESHOLDS", "MAX_COCO_BYTES", "MAX_DETS",
+           "MIN_SCALE_FIT", "MIN_SIGMA", "PROFILE_2D_VERSIONS", "RECALL_THRESHOLDS",
+           "REGION_SCORES", "REPORT_LEVELS", "SCORE_METHODS_2D", "STAT_NAMES",
+           "SYNTHETIC_CATEGORIES", "BoxRegions", "Calibrated2D", "CocoEvaluation", "CocoInstances",
+           "ConformalBoxes", "Detections2D", "EdgeErrorScale", "FitOptions2D", "GroundTruth2D",
            "MatchLabels", "PositionCalibrator", "Profile2D", "ScoreInputs", "ScoreStage2D",
            "box_edges", "box_features", "box_iou", "box_scores", "calibrate_2d", "category_index",
            "check_fit_input_2d", "coco_results", "detection_ece_2d", "edge_covariance",

@@ -28,10 +28,21 @@ from calibrators.boxes2d._edges import box_edges, edges_box
 from calibrators.core.checks import as_float_array, check_choice, check_length
 from calibrators.core.errors import FieldError
 
-__all__ = ["BOX_SCORES", "box_scores", "box_sizes", "check_sigma", "region_boxes"]
+__all__ = ["BOX_SCORES", "REGION_SCORES", "box_scores", "box_sizes", "check_sigma",
+           "conformity_score", "region_boxes"]
 
-#: The conformity scores: pixels, or pixels over the detector's σ.
+#: The conformity scores: pixels, or pixels over a per-edge σ.
 BOX_SCORES: tuple[str, ...] = ("additive", "scaled")
+#: The box regions a 2-D profile serves: additive; scaled by the σ of the decoder layers'
+#: spread; adaptive: scaled by the fitted edge-error scale (`EdgeErrorScale`).
+REGION_SCORES: tuple[str, ...] = ("additive", "scaled", "adaptive")
+
+
+def conformity_score(region_score: str) -> str:
+    """The conformity score (`BOX_SCORES`) behind a `REGION_SCORES` entry: `scaled` for
+    both σ-scaled kinds, whatever gives the σ."""
+    check_choice("region_score", region_score, REGION_SCORES)
+    return "additive" if region_score == "additive" else "scaled"
 
 
 def check_sigma(sigma: object, n: int, score: str) -> np.ndarray | None:

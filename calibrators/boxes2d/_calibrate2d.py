@@ -7,7 +7,9 @@ calibrated score and, per level, its box region, in the input's row order.
   profile's own `image_size` when the fit images all shared one.
 - regions: the profile's `ConformalBoxes` at `levels` (default `DEFAULT_LEVELS`), scaled by
   each edge's σ from the spread of the detection's `layer_boxes` when the profile's regions
-  are (`edge_covariance` with the profile's `min_sigma`).
+  are `scaled` (`edge_covariance` with the profile's `min_sigma`), or by its fitted edge-error
+  scale when they are `adaptive` (`EdgeErrorScale`, which may read the layer boxes' spread
+  and the image size).
 
 A bad input raises `FieldError` naming the field (and row): a category the profile does not
 know (`category_id`), missing logits or layer boxes, a bad level.
@@ -69,40 +71,53 @@ def calibrate_2d(profile: Profile2D, detections: Detections2D,
     """Calibrate `detections [N]` with a 2-D `profile` (module docstring). `levels`: the
     region levels (None: `DEFAULT_LEVELS` when the profile has regions, none otherwise; given
     to a profile without regions, a FieldError). `image_size [N, 2]`: each detection's image
-    width and height (pixels), read only by a `position` score stage."""
+    width and height (pixels), read by a `position` score stage and by adaptive regions
+    whose scale reads the image border (`Profile2D.reads_image_size`); None: the profile's
+    own `image_size`."""
     if not isinstance(profile, Profile2D):
         raise FieldError("profile", "profile must be a Profile2D (a 2-D profile)")
     if not isinstance(detections, Detections2D):
         raise FieldError("detections", "detections must be a Detections2D")
     z, labels = _score_inputs(profile, detections)
     stage = profile.score_stage
-    size = _image_size(profile, image_size, len(detections)) if stage.uses_position else None
-    score = stage.transform(z, labels, size, detections.bbox)
+    size = _image_size(profile, image_size, len(detections)) \
+        if profile.reads_image_size else None
+    score = stage.transform(z, labels, size if stage.uses_position else None, detections.bbox)
     regions = None
     if profile.box_regions is not None:
         q = check_levels(DEFAULT_LEVELS if levels is None else levels)
         regions = profile.box_regions.serve(detections.bbox, detections.category_id,
-                                            served_sigma(profile, detections), q)
+                                            served_sigma(profile, detections, size), q)
     elif levels is not None:
         raise FieldError("levels", "this 2-D profile serves no box regions (it was fit "
                                    "without a calibration part): leave levels out")
     return Calibrated2D(detections, score, regions)
 
 
-def served_sigma(profile: Profile2D, detections: Detections2D) -> np.ndarray | None:
-    """`[N, 4]` σ of each box edge the profile's scaled regions read (from `layer_boxes`), or
-    None for additive regions; FieldError naming `layer_boxes` when they are missing."""
-    if profile.regions is None or profile.regions["score"] != "scaled":
+def served_sigma(profile: Profile2D, detections: Detections2D,
+                 image_size: np.ndarray | None = None) -> np.ndarray | None:
+    """`[N, 4]` σ of each box edge the profile's regions divide by: the spread of the
+    `layer_boxes` (scaled), the fitted edge-error scale (adaptive), or None (additive).
+    `image_size [N, 2]` as `calibrate_2d` takes it. FieldError naming `layer_boxes` or
+    `image_size` when what the regions read is missing."""
+    kind = profile.region_score
+    if kind is None or kind == "additive":
         return None
     if len(detections) == 0:
         return np.zeros((0, 4))
+    scale = profile.error_scale
     layers = detections.layer_boxes
-    if layers is None or layers.shape[1] < 2:
-        raise FieldError("layer_boxes", "this profile's box regions are scaled by the spread "
-                                        "of the decoder layers' boxes: send each detection's "
-                                        "layer_boxes, L >= 2 boxes [x, y, w, h]",
-                         row=0)
-    return edge_sigma(edge_covariance(layers, profile.regions["min_sigma"]))
+    if kind == "scaled" or scale.uses_layer_sigma:
+        if layers is None or layers.shape[1] < 2:
+            raise FieldError("layer_boxes", "this profile's box regions read the spread of "
+                                            "the decoder layers' boxes: send each detection's "
+                                            "layer_boxes, L >= 2 boxes [x, y, w, h]", row=0)
+    if kind == "scaled":
+        return edge_sigma(edge_covariance(layers, profile.regions["min_sigma"]))
+    size = _image_size(profile, image_size, len(detections)) if scale.uses_image_size \
+        else None
+    spread = edge_sigma(edge_covariance(layers, 0.0)) if scale.uses_layer_sigma else None
+    return scale.predict(detections.bbox, detections.score, spread, size)
 
 
 def _score_inputs(profile: Profile2D, detections: Detections2D) -> tuple[np.ndarray,
@@ -127,6 +142,7 @@ def _image_size(profile: Profile2D, image_size: np.ndarray | None, n: int) -> np
         check_length("image_size", size, n, "detections")
         return size
     if profile.image_size is None:
-        raise FieldError("image_size", "this profile's score calibrator reads the box position "
-                                       "in its image: give each image's width and height")
+        raise FieldError("image_size", "this profile reads where each box lies in its image "
+                                       "(its score calibrator or box regions): give each "
+                                       "image's width and height")
     return np.tile(np.asarray(profile.image_size, dtype=np.float64), (n, 1))

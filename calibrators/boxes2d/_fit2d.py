@@ -12,9 +12,11 @@ counterpart of `calibrators.fit.fit_profile`.
 4. Score stage (`_score_fit`): every candidate fit on the fitting part, the lowest NLL on the
    calibration part chosen, refit on both.
 5. Box regions: `ConformalBoxes` fit on the calibration part's true positives (their matched
-   ground truth), per category × COCO size, `scaled` by the edge σ of the decoder layers'
-   spread when the detections carry `layer_boxes` (L >= 2), else `additive`. Without a
-   calibration part the profile has no regions.
+   ground truth), per category × COCO size. By default (`region_score="auto"`) `adaptive`:
+   each edge's error divided by the `EdgeErrorScale` fit on the fitting part's true
+   positives; with fewer than `MIN_SCALE_FIT` of those, `scaled` by the edge σ of the decoder
+   layers' spread when the detections carry `layer_boxes` (L >= 2), else `additive`.
+   Without a calibration part the profile has no regions.
 6. Report (`_fit_report`): the held-out images when `holdout > 0`, and every candidate's
    held-out NLL, ECE and D-ECE.
 """
@@ -28,9 +30,11 @@ from typing import Any
 
 import numpy as np
 
+from calibrators.boxes2d._box_scores import conformity_score
 from calibrators.boxes2d._boxes import Detections2D
 from calibrators.boxes2d._coco_instances import CocoInstances
 from calibrators.boxes2d._conformal_boxes import ConformalBoxes
+from calibrators.boxes2d._error_scale import EdgeErrorScale
 from calibrators.boxes2d._fit_options import FitOptions2D
 from calibrators.boxes2d._fit_report import REPORT_LEVELS, holdout_report
 from calibrators.boxes2d._labels import match_labels
@@ -42,7 +46,11 @@ from calibrators.core.errors import FieldError, OptionError
 from calibrators.data import held_out_frames
 from calibrators.profile import make_provenance
 
-__all__ = ["check_fit_input_2d", "fit_profile_2d", "held_out_images"]
+__all__ = ["MIN_SCALE_FIT", "check_fit_input_2d", "fit_profile_2d", "held_out_images"]
+
+#: Fitting-part true positives the adaptive regions' edge-error scale needs (about ten per
+#: coefficient).
+MIN_SCALE_FIT: int = 100
 
 Progress = Callable[[str, float], None]
 
@@ -85,8 +93,8 @@ def fit_profile_2d(detections: Detections2D, instances: CocoInstances,
     stage, selection = fit_score_stage_2d(data, train, calib if calib.any() else None,
                                           opts.score_method, opts.min_samples)
     say("regions", 0.55)
-    regions = (_regions(data, truth.bbox, calib, region_score, opts, ids) if calib.any()
-               else None)
+    regions = (_regions(data, truth.bbox, train, calib, region_score, opts, ids)
+               if calib.any() else None)
     profile = Profile2D(
         category_ids=ids, category_names=tuple(instances.category_name),
         score_mode=opts.score_mode, image_size=_common_size(instances),
@@ -115,8 +123,9 @@ def check_fit_input_2d(detections: Detections2D, instances: CocoInstances,
     """Raise `FieldError` / `OptionError` naming what makes `detections` and `instances`
     unfit for a 2-D fit with `options` (an image or category the instances lack, logits
     without `score_mode` or the reverse, logits of the wrong width, scaled regions without
-    layer boxes); returns the region score the fit will use. Front ends call it to refuse an
-    upload before queueing a fit."""
+    layer boxes); returns the region score the fit will use (`auto:<fallback>` for `auto`:
+    adaptive when the fitting part holds `MIN_SCALE_FIT` true positives, else the fallback).
+    Front ends call it to refuse an upload before queueing a fit."""
     if not isinstance(instances, CocoInstances):
         raise FieldError("instances", "instances must be a CocoInstances (read_coco_instances)")
     if not isinstance(detections, Detections2D) or len(detections) == 0:
@@ -150,23 +159,44 @@ def _region_score(detections: Detections2D, opts: FitOptions2D) -> str:
         raise OptionError("region_score", "region_score='scaled' needs the detections' "
                                           "layer_boxes of L >= 2 decoder layers")
     if opts.region_score == "auto":
-        return "scaled" if layered else "additive"
+        return "auto:scaled" if layered else "auto:additive"
     return opts.region_score
 
 
-def _regions(data: ScoreData, truth_bbox: np.ndarray, calib: np.ndarray, score: str,
-             opts: FitOptions2D, ids: tuple[int, ...]) -> dict[str, Any] | None:
-    """The `regions` field: `ConformalBoxes` on the calibration part's true positives."""
+def _regions(data: ScoreData, truth_bbox: np.ndarray, train: np.ndarray, calib: np.ndarray,
+             score: str, opts: FitOptions2D, ids: tuple[int, ...]) -> dict[str, Any] | None:
+    """The `regions` field: `ConformalBoxes` on the calibration part's true positives, their
+    errors scaled by the edge-error scale fit on the fitting part's (adaptive), by the layer
+    spread (scaled) or not at all (additive). `score` is `_region_score`'s: `auto:<fallback>`
+    is adaptive when the fitting part holds `MIN_SCALE_FIT` true positives."""
     rows = calib & data.match.true_positive
     if not rows.any():
         return None
-    dets = data.detections
-    sigma = None if score == "additive" else edge_sigma(
-        edge_covariance(dets.layer_boxes[rows], opts.min_sigma))
-    boxes = ConformalBoxes(score=score, min_group=opts.min_group).fit(
-        dets.bbox[rows], truth_bbox[data.match.gt_row[rows]], dets.category_id[rows], sigma,
+    fit_rows = train & data.match.true_positive
+    if score.startswith("auto:"):
+        score = "adaptive" if fit_rows.sum() >= MIN_SCALE_FIT else score[len("auto:"):]
+    elif score == "adaptive" and fit_rows.sum() < MIN_SCALE_FIT:
+        raise OptionError("region_score", f"region_score='adaptive' fits its edge-error scale "
+                          f"on the fitting part's true positives: {int(fit_rows.sum())} < "
+                          f"{MIN_SCALE_FIT}")
+    dets, gt = data.detections, data.match.gt_row
+    layered = dets.layer_boxes is not None and dets.layer_boxes.shape[1] >= 2
+    out: dict[str, Any] = {"score": score, "min_sigma": opts.min_sigma}
+    sigma = None
+    if score == "scaled":
+        sigma = edge_sigma(edge_covariance(dets.layer_boxes[rows], opts.min_sigma))
+    elif score == "adaptive":
+        def inputs(m: np.ndarray) -> tuple[np.ndarray, ...]:
+            spread = edge_sigma(edge_covariance(dets.layer_boxes[m], 0.0)) if layered else None
+            return dets.bbox[m], dets.score[m], spread, data.image_size[m]
+        box, p, spread, size = inputs(fit_rows)
+        scale = EdgeErrorScale().fit(box, truth_bbox[gt[fit_rows]], p, spread, size)
+        sigma = scale.predict(*inputs(rows))
+        out["scale"] = scale.to_dict()
+    boxes = ConformalBoxes(score=conformity_score(score), min_group=opts.min_group).fit(
+        dets.bbox[rows], truth_bbox[gt[rows]], dets.category_id[rows], sigma,
         all_classes=list(ids))
-    return {"score": score, "min_sigma": opts.min_sigma, "conformal": boxes.to_dict()}
+    return {**out, "conformal": boxes.to_dict()}
 
 
 def _guarantees(profile: Profile2D) -> list[dict[str, Any]]:

@@ -14,7 +14,7 @@ import numbers
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
-from calibrators.boxes2d._box_scores import BOX_SCORES
+from calibrators.boxes2d._box_scores import REGION_SCORES
 from calibrators.boxes2d._layer_spread import MIN_SIGMA
 from calibrators.core.errors import OptionError
 from calibrators.core.vocab import SCORE_METHODS, SCORE_MODES
@@ -47,9 +47,12 @@ class FitOptions2D:
     `SCORE_METHODS_2D`, or `auto`: the lowest held-out NLL on the calibration part.
     score_mode: `sigmoid` or `softmax`, how to read the detections' `logits` (required with
     logits, unused without: the score's logit is calibrated). region_score: the conformity
-    score of the box regions, `additive` (pixels) or `scaled` (pixels over the edge σ from
-    the decoder layers' spread, which needs `layer_boxes` with L >= 2), or `auto`: scaled when
-    the detections carry such layer boxes. min_sigma: the floor of each edge's σ (pixels).
+    score of the box regions, `additive` (pixels), `scaled` (pixels over the edge σ from
+    the decoder layers' spread, which needs `layer_boxes` with L >= 2), `adaptive` (pixels
+    over the edge-error scale `EdgeErrorScale` fit on the fitting part's true positives: box
+    extent, score, layer spread when given, image border), or `auto`: adaptive when the
+    fitting part holds at least `MIN_SCALE_FIT` true positives, else scaled with layer
+    boxes, else additive. min_sigma: the floor of each edge's σ (pixels, scaled regions).
     min_samples: detections a class needs for its own score calibrator (else the pooled one).
     min_group: calibration true positives a class × size cell needs for its own region radius.
     """
@@ -65,9 +68,9 @@ class FitOptions2D:
     score_mode: str | None = _opt(None, "how the detections' logits read: sigmoid or softmax "
                                   "(none: no logits, the score is calibrated)", str,
                                   SCORE_MODES, nullable=True)
-    region_score: str = _opt("auto", "box regions: additive pixels, or scaled by each edge's "
-                             "σ across decoder layers (auto: scaled with layer_boxes)", str,
-                             ("auto", *BOX_SCORES))
+    region_score: str = _opt("auto", "box regions: additive pixels, scaled by each edge's σ "
+                             "across decoder layers, or adaptive: scaled by a fitted edge-error "
+                             "scale (auto: adaptive)", str, ("auto", *REGION_SCORES))
     min_sigma: float = _opt(MIN_SIGMA, "floor of each box edge's σ in pixels (scaled regions)",
                             float)
     min_samples: int = _opt(50, "detections a class needs for its own score calibrator", int)
@@ -81,7 +84,7 @@ class FitOptions2D:
             set_(self, name, _fraction(name, getattr(self, name), 1.0, False))
         set_(self, "seed", _integer("seed", self.seed, 0))
         for name, choices in (("score_method", ("auto", *SCORE_METHODS_2D)),
-                              ("region_score", ("auto", *BOX_SCORES))):
+                              ("region_score", ("auto", *REGION_SCORES))):
             if getattr(self, name) not in choices:
                 raise OptionError(name, f"{name} must be one of {list(choices)}, got "
                                         f"{getattr(self, name)!r}")

@@ -9,12 +9,13 @@ Its JSON says what it is (`"kind": "boxes2d"`, `calibrators.core.vocab.profile_k
      "image_size": [W, H] | null,                       # the fit images' size, if all shared it
      "matching": {"rule": "coco_iou", "iou_threshold": 0.5},
      "score_calibration": {"method", "temperature", "params"},          # `ScoreStage2D`
-     "regions": {"score": "additive" | "scaled", "min_sigma": 1.0,
+     "regions": {"score": "additive" | "scaled" | "adaptive", "min_sigma": 1.0,
+                 "scale": {...},                    # adaptive only: `EdgeErrorScale`
                  "conformal": {...}} | null,                            # `ConformalBoxes`
      "report": {...}, "provenance": {...}}
 
 `to_json()` / `from_json()` round-trip exactly; `from_dict` validates every key (a ValueError
-names it) and parses the stages once into `score_stage` and `box_regions`.
+names it) and parses the stages once into `score_stage`, `box_regions` and `error_scale`.
 """
 
 from __future__ import annotations
@@ -24,8 +25,9 @@ import json
 from dataclasses import dataclass, field
 from typing import Any
 
-from calibrators.boxes2d._box_scores import BOX_SCORES
+from calibrators.boxes2d._box_scores import REGION_SCORES, conformity_score
 from calibrators.boxes2d._conformal_boxes import ConformalBoxes
+from calibrators.boxes2d._error_scale import EdgeErrorScale
 from calibrators.boxes2d._score_fit import ScoreStage2D
 from calibrators.core.json_safe import parse_json, to_jsonable
 from calibrators.core.vocab import SCORE_MODES, profile_kind
@@ -54,8 +56,9 @@ class Profile2D:
         calibration part: no box regions).
     report, provenance : JSON objects.
 
-    Parsed once (not fields, not in the JSON): `score_stage` (`ScoreStage2D`) and
-    `box_regions` (`ConformalBoxes` or None).
+    Parsed once (not fields, not in the JSON): `score_stage` (`ScoreStage2D`),
+    `box_regions` (`ConformalBoxes` or None) and `error_scale` (`EdgeErrorScale` of adaptive
+    regions, else None).
     """
 
     category_ids: tuple[int, ...]
@@ -96,6 +99,7 @@ class Profile2D:
                              f"{len(ids)} categories")
         put("score_stage", stage)
         put("box_regions", _regions(self.regions))
+        put("error_scale", _scale(self.regions))
         for key in ("score_calibration", "regions", "report", "provenance"):
             value = getattr(self, key)
             if value is None and key == "regions":
@@ -123,8 +127,15 @@ class Profile2D:
 
     @property
     def region_score(self) -> str | None:
-        """The served box regions' score (`additive` or `scaled`), None without regions."""
+        """The served box regions' score (`REGION_SCORES`), None without regions."""
         return None if self.regions is None else self.regions["score"]
+
+    @property
+    def reads_image_size(self) -> bool:
+        """Whether serving reads each detection's image size: a `position` score stage, or
+        adaptive regions whose scale reads where a box meets its image's border."""
+        return self.score_stage.uses_position or (
+            self.error_scale is not None and self.error_scale.uses_image_size)
 
     # -- serialisation -------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -200,16 +211,26 @@ def _regions(value: Any) -> ConformalBoxes | None:
     """The served `ConformalBoxes` of the `regions` field (None for null)."""
     if value is None:
         return None
-    if not isinstance(value, dict) or set(value) != {"score", "min_sigma", "conformal"}:
+    keys = {"score", "min_sigma", "conformal"}
+    if isinstance(value, dict) and value.get("score") == "adaptive":
+        keys.add("scale")
+    if not isinstance(value, dict) or set(value) != keys:
         raise ValueError("regions must be null or an object with score, min_sigma and "
-                         "conformal")
-    if value["score"] not in BOX_SCORES:
-        raise ValueError(f"regions.score must be one of {list(BOX_SCORES)}, got "
+                         "conformal (and scale, for adaptive regions)")
+    if value["score"] not in REGION_SCORES:
+        raise ValueError(f"regions.score must be one of {list(REGION_SCORES)}, got "
                          f"{value['score']!r}")
     sigma = value["min_sigma"]
     if isinstance(sigma, bool) or not isinstance(sigma, int | float) or not 0 < sigma < 1e300:
         raise ValueError(f"regions.min_sigma must be a number > 0, got {sigma!r}")
     boxes = ConformalBoxes.from_dict(value["conformal"])
-    if boxes.score != value["score"]:
+    if boxes.score != conformity_score(value["score"]):
         raise ValueError("regions.score and regions.conformal's score differ")
     return boxes
+
+
+def _scale(value: Any) -> EdgeErrorScale | None:
+    """The edge-error scale of adaptive `regions` (None for others)."""
+    if value is None or value["score"] != "adaptive":
+        return None
+    return EdgeErrorScale.from_dict(value["scale"])

@@ -52,11 +52,12 @@ def test_calibrated_scores_beat_raw_ones_on_held_out_images(fitted):
     assert all({"nll", "ece", "d_ece"} == set(c) for c in selection["candidates"].values())
 
 
-@pytest.mark.parametrize("layers", [True, False])
-def test_each_category_is_covered_near_its_level_over_many_draws(layers):
+@pytest.mark.parametrize(("layers", "region_score"), [
+    (True, "scaled"), (False, "additive"), (True, "adaptive"), (False, "adaptive")])
+def test_each_category_is_covered_near_its_level_over_many_draws(layers, region_score):
     """12 seeded draws, half the images held out: each category's joint four-edge coverage
     averaged over the draws is within 3 standard errors of q (scaled regions with layer
-    boxes, additive without)."""
+    boxes, additive without, adaptive with and without)."""
     levels = (0.8, 0.9)
     hits = {1: [], 2: []}
     for seed in range(12):
@@ -64,8 +65,9 @@ def test_each_category_is_covered_near_its_level_over_many_draws(layers):
         if not layers:
             found = Detections2D(found.image_id, found.category_id, found.bbox, found.score)
         profile = fit_profile_2d(found, instances, holdout=0.5, calibration=0.6, seed=seed,
-                                 score_method="temperature", min_group=50)
-        assert profile.region_score == ("scaled" if layers else "additive")
+                                 score_method="temperature", min_group=50,
+                                 region_score=region_score)
+        assert profile.region_score == region_score
         per_class = profile.report["holdout"]["regions"]["per_class"]
         for cid, name in zip(profile.category_ids, profile.category_names, strict=True):
             hits[cid].append(per_class[name]["coverage"])
@@ -106,6 +108,11 @@ def test_read_profile_tells_the_kinds_apart():
     (lambda d: d["matching"].update(iou_threshold=2), "matching.iou_threshold"),
     (lambda d: d["score_calibration"].update(method="magic"), "score_calibration.method"),
     (lambda d: d.update(image_size=[640]), "image_size"),
+    (lambda d: d["regions"].pop("scale"), "and scale, for adaptive"),
+    (lambda d: d["regions"].update(score="scaled"), "and scale, for adaptive"),
+    (lambda d: d["regions"]["scale"].update(coef=[]), "scale.coef"),
+    (lambda d: d["regions"]["conformal"]["hyper"].update(score="additive"),
+     "conformal's score differ"),
 ])
 def test_a_bad_profile_key_is_named(fitted, change, key):
     doc = json.loads(fitted[2].to_json())
@@ -184,6 +191,26 @@ def test_serving_errors_name_the_field(fitted):
     size = np.tile([640.0, 480.0], (len(found), 1))
     assert np.array_equal(calibrate_2d(sized, found, image_size=size).score,
                           calibrate_2d(profile, found).score)
+
+
+def test_adaptive_regions_are_the_default_and_fall_back_on_few_fitting_boxes(fitted):
+    found, instances, profile = fitted
+    assert profile.region_score == "adaptive" and profile.error_scale is not None
+    assert profile.error_scale.features_[-2:] == ["log_layer_sigma", "at_border"]
+    assert profile.reads_image_size and profile.report["holdout"]["regions"] is not None
+    # a narrower image: the border term reads the size the request gives, not the profile's
+    narrow = np.tile([320.0, 480.0], (len(found), 1))
+    wide = calibrate_2d(profile, found, [0.9]).regions.outer
+    other = calibrate_2d(profile, found, [0.9], image_size=narrow).regions.outer
+    assert not np.array_equal(wide, other)
+    # too few fitting true positives: auto falls back, a named adaptive is refused
+    small, small_inst = pair(60, seed=4)
+    fallback = fit_profile_2d(small, small_inst, calibration=0.5)
+    assert fallback.region_score == "scaled" and fallback.error_scale is None
+    assert fallback.reads_image_size == fallback.score_stage.uses_position
+    with pytest.raises(OptionError, match="fitting part's true positives") as err:
+        fit_profile_2d(small, small_inst, calibration=0.5, region_score="adaptive")
+    assert err.value.field == "region_score"
 
 
 def test_fit_input_errors_name_the_field():
