@@ -184,6 +184,20 @@ class DashboardRenderer:
             self._plots[key] = out
         return out
 
+    def panels_2d(self, loaded: LoadedProfile) -> str:
+        """The panels of a 2-D profile version (`app.dashboard.panels2d`, cached by version
+        id)."""
+        key = "boxes2d" + loaded.record.ref + loaded.record.sha256
+        with self._lock:
+            if key in self._plots:
+                return self._plots[key]
+        from app.dashboard.panels2d import report_panels
+
+        out = report_panels(loaded)
+        with self._lock:
+            self._plots[key] = out
+        return out
+
     def bev(self, loaded: LoadedProfile, detectors: Any, sensor: str, seed: int) -> str:
         """The BEV frame before/after calibration (cached), or a note saying why not."""
         key = f"{loaded.record.ref}{loaded.record.sha256}{sensor}{seed}"
@@ -248,7 +262,7 @@ def render_page(*, version: str, status: dict[str, str], uptime_s: float,
                 bev_html: str, jobs: list[JobRecord], health_html: str = "",
                 profile_note: str | None = None) -> str:
     """The whole dashboard document; `profile_note` (HTML) stands for the active profile's
-    panel when its panels cannot be drawn (a 2-D profile)."""
+    panel when it is not a 3-D profile (`app.dashboard.panels2d.profile_summary`)."""
     total = sum(requests.values())
     rate = total / max(uptime_s, 1e-9)
     status_cells = "".join(

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from html import escape
 from typing import Annotated
 
 from fastapi import APIRouter, Depends, Request
@@ -51,11 +50,15 @@ def dashboard(request: Request, store: StoreDep, cache: CacheDep, settings: Sett
         status["active profile"] = str(exc)
     status["readiness"] = "ready" if ok and loaded is not None else "not ready"
     report_html = bev_html = versions_html = health_html = ""
-    if loaded is not None and loaded.kind != "3d":   # a 2-D profile: no panels drawn yet
-        note = (f"<p><b>{escape(loaded.record.ref)}</b> · 2-D profile: panels not yet "
-                f"available (its report: <code>GET /v1/profiles/{escape(loaded.record.name)}/"
-                f"{loaded.record.version}</code>)</p>"
-                + versions_table(store.versions(loaded.record.name)))
+    if loaded is not None and loaded.kind != "3d":   # a 2-D profile: its own panels
+        from app.dashboard.panels2d import profile_summary
+
+        note = profile_summary(loaded, versions_table(store.versions(loaded.record.name)))
+        report_html = renderer.panels_2d(loaded)
+        bev_html = ("<p class='note'>A 2-D profile has no bird's-eye view: one of its held-out "
+                    "images is drawn above.</p>")
+        health_html = ("<p class='note'>Labelled feedback is measured for 3-D profiles only."
+                       "</p>")
         loaded = None
     if loaded is not None:
         versions_html = versions_table(store.versions(loaded.record.name))

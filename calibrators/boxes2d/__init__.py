@@ -33,7 +33,8 @@ A 2-D profile (docs/boxes2d.md, "A 2-D profile"):
 - `_score_fit`: the score stage, candidates chosen by held-out NLL (`ScoreStage2D`).
 - `_profile2d`: `Profile2D`, the fitted 2-D calibration as versioned JSON (`kind: boxes2d`).
 - `_fit2d`: `fit_profile_2d`, the fit: image splits, score stage, box regions, report
-  (`_fit_report`).
+  (`_fit_report`, with what the dashboard draws: `_report_scores` reliability and position
+  cells, `_report_regions` coverage per category × size, `_report_sample` one image).
 - `_calibrate2d`: `calibrate_2d`, serving a profile (`Calibrated2D`).
 - `_synthetic`: `synthetic_coco`, a synthetic COCO validation set for tests and tours.
 """

@@ -10,7 +10,16 @@ match at the profile's IoU threshold:
 - `per_class`: per category its detections, true positives and the two ECEs;
 - `regions` (profiles with box regions): at `REPORT_LEVELS`, the fraction of the held-out true
   positives whose true box lies between the inner and the outer box (all four edges), overall
-  and per category, with the counts behind them.
+  and per category, with the counts behind them; `per_class_size`: the same per category ×
+  box size cell of the regions, with covered counts and sampling intervals (`_report_regions`).
+
+What the dashboard draws (reports written before these keys lack them):
+
+- `reliability`: reliability diagrams, raw and calibrated, overall and per category;
+- `position`: calibration per cell of the box centre on the D-ECE's position bins
+  (`_report_scores`);
+- `sample`: one held-out image, its detections with their scores and regions at 0.9 and its
+  ground truth (`_report_sample`).
 """
 
 from __future__ import annotations
@@ -24,6 +33,9 @@ from calibrators.boxes2d._boxes import GroundTruth2D
 from calibrators.boxes2d._calibrate2d import calibrate_2d, served_sigma
 from calibrators.boxes2d._calibration_errors import localisation_ece_2d
 from calibrators.boxes2d._profile2d import Profile2D
+from calibrators.boxes2d._report_regions import size_coverage
+from calibrators.boxes2d._report_sample import sample_image
+from calibrators.boxes2d._report_scores import position_report, reliability_report
 from calibrators.boxes2d._score_fit import SELECTION_FEATURES, ScoreData, selection_dece
 from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
@@ -44,6 +56,7 @@ def holdout_report(profile: Profile2D, data: ScoreData, truth: GroundTruth2D,
     regions = profile.box_regions
     served = calibrate_2d(profile, dets, REPORT_LEVELS if regions is not None else None, size)
     raw, cal = dets.score, served.score
+    names = dict(zip(profile.category_ids, profile.category_names, strict=True))
     out: dict[str, Any] = {
         "n_images": int(len(np.unique(truth.image_id[held_truth]))),
         "n_detections": int(rows.sum()), "n_true_positives": int(tp.sum()),
@@ -55,15 +68,22 @@ def holdout_report(profile: Profile2D, data: ScoreData, truth: GroundTruth2D,
         "laece": {"raw": _laece(data, rows, truth, held_truth, raw),
                   "calibrated": _laece(data, rows, truth, held_truth, cal)},
         "per_class": _per_class(profile, dets.category_id, tp, raw, cal),
-        "regions": None}
+        "regions": None,
+        "reliability": reliability_report(dets.category_id, tp, raw, cal, profile.category_ids,
+                                          profile.category_names),
+        "position": position_report(dets.bbox, size, tp, raw, cal),
+        "sample": sample_image(dets, tp, cal, size, served.regions, truth.take(held_truth),
+                               names)}
     if regions is not None and tp.any():
         hit = np.flatnonzero(tp)
         boxes = dets.take(hit)
         true = truth.bbox[data.match.gt_row[rows][hit]]
-        scores = regions.scores(boxes.bbox, true, served_sigma(profile, boxes))
-        covered = scores[:, None] <= regions.radii(REPORT_LEVELS, boxes.bbox,
-                                                     boxes.category_id)
-        out["regions"] = _coverage(profile, boxes.category_id, covered)
+        scores = regions.scores(boxes.bbox, true, served_sigma(profile, boxes, size[hit]))
+        radii = regions.radii(REPORT_LEVELS, boxes.bbox, boxes.category_id)
+        out["regions"] = {
+            **_coverage(profile, boxes.category_id, scores[:, None] <= radii),
+            "per_class_size": size_coverage(regions, boxes.bbox, boxes.category_id, scores,
+                                            radii, REPORT_LEVELS, names)}
     return to_jsonable(out)
 
 
