@@ -1,8 +1,8 @@
 """Hostile Arrow IPC streams for the binary calibrate path: valid request streams built from a
-dump (as tests/app/calibrate/test_arrow.py builds them), a seeded mutator that corrupts them
-where Arrow readers trust the writer (offsets, buffer offsets and lengths, field-node and row
-counts, dictionary indices, compression length prefixes, codec bytes, raw bytes, truncation),
-and the issue-25 bombs and 500s.
+dump (as tests/app/calibrate/test_arrow.py builds them) or from 2-D COCO results, a seeded
+mutator that corrupts them where Arrow readers trust the writer (offsets, buffer offsets and
+lengths, field-node and row counts, dictionary indices, compression length prefixes, codec
+bytes, raw bytes, truncation), and the issue-25 bombs and 500s.
 
 Positions come from the stream's own framing: each message is `0xFFFFFFFF`, an int32
 metadata length, the flatbuffer metadata, then the body; `calibrators.io.arrow_headers` gives
@@ -65,6 +65,37 @@ def request_batch(dump, n: int, *, variant: int = 0) -> pa.RecordBatch:
     cols["box"] = (pa.array(box.tolist(), pa.list_(pa.float32())) if variant == 1
                    else _fixed(box))
     cols["covariance"] = _fixed(dump.det_cov[rows].reshape(n, -1))
+    return pa.RecordBatch.from_pydict(cols)
+
+
+def request_batch_2d(records: list[dict], *, variant: int = 0) -> pa.RecordBatch:
+    """A valid 2-D request batch (`calibrators.io.arrow_boxes2d`) of COCO results `records`
+    (with `layer_boxes`, as `synthetic_coco` writes them), `id` "d<i>" for record i;
+    `variant` picks the column types (0 fixed lists, int64 ids, image sizes; 1 variable lists,
+    narrow ints and float32, no sizes; 2 large-string ids, lists of fixed lists, float
+    sizes and `logits` [2])."""
+    n = len(records)
+    bbox = np.asarray([r["bbox"] for r in records], dtype=np.float64).reshape(n, 4)
+    layers = [r["layer_boxes"] for r in records]
+    cols: dict[str, pa.Array] = {
+        "image_id": pa.array([r["image_id"] for r in records],
+                             pa.int32() if variant == 1 else pa.int64()),
+        "id": pa.array([f"d{i}" for i in range(n)],
+                       pa.large_string() if variant == 2 else pa.string()),
+        "category_id": pa.array([r["category_id"] for r in records],
+                                pa.int16() if variant == 1 else pa.int64())}
+    if variant == 1:
+        cols["bbox"] = pa.array(bbox.tolist(), pa.list_(pa.float32()))
+        cols["score"] = pa.array([r["score"] for r in records], pa.float32())
+        cols["layer_boxes"] = pa.array(layers, pa.list_(pa.list_(pa.float64())))
+        return pa.RecordBatch.from_pydict(cols)
+    cols["bbox"] = _fixed(bbox)
+    cols["score"] = pa.array([r["score"] for r in records], pa.float64())
+    cols["layer_boxes"] = pa.array(layers, pa.list_(pa.list_(pa.float64(), 4)))
+    size = pa.float64() if variant == 2 else pa.int32()
+    cols["width"], cols["height"] = pa.array([640] * n, size), pa.array([480] * n, size)
+    if variant == 2:
+        cols["logits"] = _fixed(np.tile([-1.0, -2.0], (n, 1)))
     return pa.RecordBatch.from_pydict(cols)
 
 

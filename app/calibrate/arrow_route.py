@@ -6,10 +6,11 @@ under a millisecond, and FastAPI's machinery around it (route matching, dependen
 a worker-thread hop per `def` dependency, the response object) cost about as much again.
 This middleware answers exactly the requests whose body is an Arrow stream, with the rules
 of the documented route: the same query model (`CalibrateQuery`), the same `Accept` rule
-(`check_accept`), the same engine and detection counter (`CalibrateRunner.serve`), the same
-error bodies (`error_body`). It sits inside the body-size, admin and metrics middlewares, so
-their limits, counters and `Server-Timing` apply unchanged, and it labels the request with
-the route's template as the router would. Every other request goes on to FastAPI.
+(`check_accept`: Arrow, or JSON from a 2-D profile), the same engine and detection counter
+(`CalibrateRunner.serve`), the same error bodies (`error_body`). It sits inside the
+body-size, admin and metrics middlewares, so their limits, counters and `Server-Timing` apply
+unchanged, and it labels the request with the route's template as the router would. Every
+other request goes on to FastAPI.
 """
 
 from __future__ import annotations
@@ -47,15 +48,16 @@ class ArrowCalibrateMiddleware:
             return
         state = scope["app"].state
         scope["route"] = _ROUTE   # what the metrics read: the route template, as routed
+        accept = _header(scope, b"accept")
         try:
-            check_accept(_header(scope, b"accept"), ARROW_STREAM)
+            check_accept(accept, ARROW_STREAM, "application/json")
             query = _query(scope)
         except (HTTPException, RequestValidationError) as exc:
             await _send(send, _error(exc))
             return
         body = await _body(receive)
         call = CalibrateCall("arrow", body, query.profile, query.ellipse_confidence,
-                             None if query.levels is None else tuple(query.levels))
+                             None if query.levels is None else tuple(query.levels), accept)
         await _send(send, await state.calibrator.serve(call, state.metrics))
 
 

@@ -3,7 +3,8 @@
 `CalibrateEngine.run(call)` parses the body (JSON strictly, as `app.http.json_body.parse_json`;
 an Arrow IPC stream with `calibrators.io.arrow_batch`), resolves the profile, calibrates
 (`app.calibrate.documents` for JSON and nuScenes bodies, the library's `Detections` for a
-batch) and
+batch; a 2-D profile's `images` in `app.calibrate.images2d` and its Arrow batch in
+`app.calibrate.arrow2d`, both imported only when a 2-D profile is met) and
 serialises the response in the body's format;
 an error becomes the same 4xx body the app's exception handlers write (`app.http.errors`). It
 needs nothing from the request but the `CalibrateCall`, so the same code runs in a thread of
@@ -14,14 +15,16 @@ store connection and profile cache.
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Literal
 
 import pyarrow as pa
-from fastapi.exceptions import RequestValidationError
+from fastapi.exceptions import HTTPException, RequestValidationError
 
 from app.calibrate.cache import ProfileCache
 from app.calibrate.documents import calibrate_frames, calibrate_results, check_classes
+from app.http.content_types import check_accept
 from app.http.errors import RequestError, error_body
 from app.http.json_body import dumps_json, parse_json
 from app.schemas.calibrate import CalibrateRequest
@@ -45,15 +48,17 @@ _UNAVAILABLE = dumps_json({"detail": "the Arrow body could not be processed now;
 
 @dataclass(frozen=True)
 class CalibrateCall:
-    """What a calibrate request carries: the raw body (JSON, or an Arrow stream for `arrow`)
-    and the query's already validated options (a JSON calibrate body's own fields take
-    precedence over them)."""
+    """What a calibrate request carries: the raw body (JSON, or an Arrow stream for `arrow`),
+    the query's already validated options (a JSON calibrate body's own fields take
+    precedence over them) and, for an Arrow body, its `Accept` header (answered in Arrow when
+    it takes Arrow; else in JSON by a 2-D profile, with a 406 by a 3-D one)."""
 
     kind: CallKind
     body: bytes
     profile: str | None = None
     ellipse_confidence: float | None = None    # None: ELLIPSE_CONFIDENCE
     levels: tuple[float, ...] | None = None    # None: DEFAULT_LEVELS
+    accept: str = ""                           # "": no Accept header
 
 
 @dataclass(frozen=True)
@@ -142,17 +147,32 @@ class CalibrateEngine:
         return CallOutcome(200, dumps_json(doc), loaded.record.name, n)
 
     def _arrow(self, call: CalibrateCall) -> CallOutcome:
-        loaded = self.cache.resolve(call.profile, self.default_profile, loc=("query", "profile"))
+        loaded = self.cache.resolve(call.profile, self.default_profile, loc=("query", "profile"),
+                                    kinds=PROFILE_KINDS)
+        if loaded.kind != "3d":   # 2-D: loaded only when used
+            from app.calibrate.arrow2d import calibrate_arrow_2d
+
+            doc, n, media = calibrate_arrow_2d(loaded, call, self.max_detections)
+            return CallOutcome(200, doc, loaded.record.name, n, media)
+        try:
+            check_accept(call.accept, ARROW_STREAM)
+        except HTTPException as exc:
+            return CallOutcome(exc.status_code, dumps_json({"detail": exc.detail}))
         prof = loaded.profile
         levels = DEFAULT_LEVELS if call.levels is None else call.levels
         try:
-            request = batch_request(read_stream(call.body, self.max_detections), prof.classes)
+            batch = read_stream(call.body, self.max_detections)
+            if "image_id" in batch.schema.names:
+                raise RequestError(["body", "image_id"], f"profile {loaded.record.ref} is a 3-D "
+                                   "profile: send its detections as rows with `frame_id` "
+                                   "(docs/api.md)")
+            request = batch_request(batch, prof.classes)
         except FieldError as exc:
-            raise _batch_error(exc) from None
+            raise batch_error(exc) from None
         try:
             res = request.calibrate(prof, ellipse_confidence=_confidence(call), levels=levels)
         except FieldError as exc:
-            raise _batch_error(exc, loaded.record.ref) from None
+            raise batch_error(exc, loaded.record.ref) from None
         except ValueError as exc:   # a library check that names no field
             raise RequestError(["body"], f"profile {loaded.record.ref}: {exc}") from None
         meta = {"profile": loaded.ref(), "classes": list(prof.classes),
@@ -177,10 +197,12 @@ def _with_query(body: CalibrateRequest, call: CalibrateCall) -> CalibrateRequest
     return body.model_copy(update=missing) if missing else body
 
 
-def _batch_error(exc: FieldError, ref: str | None = None) -> RequestError:
+def batch_error(exc: FieldError, ref: str | None = None,
+                columns: Mapping[str, str] = LIBRARY_TO_COLUMN) -> RequestError:
     """The 4xx of a FieldError about an Arrow batch: at the query option, at the body (not a
-    stream; 413 for too many rows), or at the column (and row) at fault; `ref` names the
-    profile when the library refused the arrays against it."""
+    stream; 413 for too many rows), or at the column (and row) at fault, `columns` mapping a
+    library argument to its column; `ref` names the profile when the library refused the
+    arrays against it."""
     row = [] if exc.row is None else [exc.row]
     if exc.field in ("levels", "ellipse_confidence"):
         return RequestError(["query", exc.field, *row], str(exc))
@@ -190,7 +212,7 @@ def _batch_error(exc: FieldError, ref: str | None = None) -> RequestError:
         return RequestError(["body"], f"{exc}: split it", status=413)
     if exc.field == "body":
         return RequestError(["body"], str(exc))
-    column = LIBRARY_TO_COLUMN.get(exc.field, exc.field)
+    column = columns.get(exc.field, exc.field)
     if ref is None:
         return RequestError(["body", column, *row], str(exc))
     return RequestError(["body", column, *row], f"profile {ref}: {exc}",

@@ -6,7 +6,8 @@ records (the records `detcal calibrate` writes) with `row` and `id`.
 Imported only when a request meets a 2-D profile (or sends `images`): the 3-D calibrate path
 never loads it. A body of the other kind is a 422 at the field that does not fit the profile
 (`frames` for a 2-D profile, `images` for a 3-D one); a library `FieldError` is a 422 at the
-detection's field (`body.images[i].detections[j].bbox`).
+detection's field (`body.images[i].detections[j].bbox`). The answer document
+(`document_2d`) is also the JSON answer to a 2-D Arrow body (`app.calibrate.arrow2d`).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ import numpy as np
 from app.calibrate.cache import LoadedProfile
 from app.http.errors import RequestError
 from app.schemas.calibrate import CalibrateRequest
-from calibrators.boxes2d import Detections2D, calibrate_2d
+from calibrators.boxes2d import Calibrated2D, Detections2D, calibrate_2d
 from calibrators.core.errors import FieldError
 
 #: Fields of a 3-D request that a 2-D profile does not read.
@@ -39,8 +40,7 @@ def calibrate_images(loaded: LoadedProfile, body: CalibrateRequest, given: set[s
                                                "send 2-D detections as `images` (docs/api.md)")
     for key in _THREE_D_ONLY:
         if key in given:
-            raise RequestError(["body", key], f"{key} is an option of 3-D profiles; profile "
-                                              f"{ref} is a 2-D (boxes2d) profile")
+            raise three_d_option(key, ref, "body")
     where = [(i, j) for i, image in enumerate(body.images)
              for j in range(len(image.detections))]
     if max_detections is not None and len(where) > max_detections:
@@ -52,7 +52,7 @@ def calibrate_images(loaded: LoadedProfile, body: CalibrateRequest, given: set[s
     try:
         detections = _detections(body, where)
         size = _image_size(body, where, profile.image_size) \
-            if profile.score_stage.uses_position else None
+            if profile.reads_image_size else None
         served = calibrate_2d(profile, detections, levels, size)
     except FieldError as exc:
         raise _located(exc, where, ref) from None
@@ -62,12 +62,31 @@ def calibrate_images(loaded: LoadedProfile, body: CalibrateRequest, given: set[s
     for record, (i, j) in zip(records, where, strict=True):
         images[i]["detections"].append({"row": j, "id": body.images[i].detections[j].id,
                                         **record})
-    doc = {"profile": loaded.ref(), "kind": loaded.kind,
-           "categories": [{"id": c, "name": n} for c, n in
-                          zip(profile.category_ids, profile.category_names, strict=True)],
-           "levels": None if served.regions is None else served.regions.levels.tolist(),
-           "images": images}
-    return doc, len(records)
+    return document_2d(loaded, served, images), len(records)
+
+
+def profile_fields_2d(loaded: LoadedProfile) -> dict[str, Any]:
+    """What a 2-D answer says of its profile: `profile` (its ref), `kind`, `categories`."""
+    profile = loaded.profile
+    return {"profile": loaded.ref(), "kind": loaded.kind,
+            "categories": [{"id": c, "name": n} for c, n in
+                           zip(profile.category_ids, profile.category_names, strict=True)]}
+
+
+def document_2d(loaded: LoadedProfile, served: Calibrated2D, images: list[dict[str, Any]]
+                ) -> dict[str, Any]:
+    """The answer (`CalibrateResponse2D`) of `served` whose detections are grouped in
+    `images` (`[{image_id, detections}]`)."""
+    return {**profile_fields_2d(loaded),
+            "levels": None if served.regions is None else served.regions.levels.tolist(),
+            "images": images}
+
+
+def three_d_option(key: str, ref: str, where: str) -> RequestError:
+    """The 422 of an option of 3-D profiles (`key`, in the body or the query) sent to the
+    2-D profile `ref`."""
+    return RequestError([where, key], f"{key} is an option of 3-D profiles; profile {ref} is "
+                                      "a 2-D (boxes2d) profile")
 
 
 def _detections(body: CalibrateRequest, where: list[tuple[int, int]]) -> Detections2D:
@@ -107,9 +126,9 @@ def _image_size(body: CalibrateRequest, where: list[tuple[int, int]],
                                 else "height"], "give the image's width and height together")
         size = default if image.width is None else (image.width, image.height)
         if size is None:
-            raise RequestError(["body", "images", i, "width"], "this profile's score "
-                               "calibrator reads the box position in its image: give each "
-                               "image's width and height")
+            raise RequestError(["body", "images", i, "width"], "this profile reads where "
+                               "each box lies in its image (its score calibrator or box "
+                               "regions): give each image's width and height")
         sizes.append(size)
     return np.asarray([sizes[i] for i, _ in where], dtype=np.float64).reshape(len(where), 2)
 

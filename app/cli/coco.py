@@ -7,7 +7,8 @@ and its instances file, and calibrated COCO results from a 2-D profile.
 A results file with `--gt` is read as COCO when it is a JSON list (a nuScenes results file is
 an object and takes `--nuscenes-gt`); `--from coco` says so explicitly. `detcal calibrate`
 knows a 2-D profile by its `kind`; `--gt` there gives the images' sizes (a `position` score
-calibrator reads the box position in its image) and checks every image id. Heavy imports
+calibrator reads the box position in its image, adaptive regions where a box meets its
+image's border) and checks every image id. Heavy imports
 happen inside the handlers.
 """
 

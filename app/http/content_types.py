@@ -1,5 +1,6 @@
 """Content negotiation of the calibrate routes: the body's media type (415 otherwise) and the
-`Accept` header (406 when it refuses the one media type a route answers a body with)."""
+`Accept` header (406 when it refuses every media type a route answers a body with: an Arrow
+body is answered in Arrow, or in JSON by a 2-D profile when `Accept` takes only JSON)."""
 
 from __future__ import annotations
 
@@ -29,19 +30,25 @@ def content_media(ctype: str, *others: str) -> str:
                         f"Content-Type must be {allowed}, got {ctype or 'none'!r}")
 
 
-def accept(request: Request, media: str) -> None:
+def accept(request: Request, media: str, *also: str) -> None:
     """Refuse (406) a request whose `Accept` header excludes `media`, the type its body's
-    format is answered in (no header, `*/*` and `type/*` accept it)."""
-    check_accept(request.headers.get("accept", ""), media)
+    format is answered in, and every type of `also` (what some profiles answer it in
+    instead); no header, `*/*` and `type/*` accept it."""
+    check_accept(request.headers.get("accept", ""), media, *also)
 
 
-def check_accept(header: str, media: str) -> None:
-    """`accept` of an `Accept` header value."""
+def accepts(header: str, media: str) -> bool:
+    """Whether an `Accept` header value takes `media` (an empty header takes anything)."""
     if not header.strip():
-        return
+        return True
     wanted = [media_type(part) for part in header.split(",")]
     kind = media.split("/", 1)[0]
-    if not any(w in (media, "*/*", f"{kind}/*") for w in wanted):
+    return any(w in (media, "*/*", f"{kind}/*") for w in wanted)
+
+
+def check_accept(header: str, media: str, *also: str) -> None:
+    """`accept` of an `Accept` header value."""
+    if not any(accepts(header, m) for m in (media, *also)):
         raise HTTPException(status.HTTP_406_NOT_ACCEPTABLE,
                             f"this body is answered as {media}, which Accept {header!r} "
                             f"refuses: send the body as the format you want back")

@@ -60,16 +60,21 @@ async def calibrate(
 ) -> Response:
     """Calibrate raw detections with the active (or a named) profile version: a JSON body
     (`CalibrateRequest`: `frames` for a 3-D profile, `images` for a 2-D one, answered with
-    `CalibrateResponse` or `CalibrateResponse2D`), or an Arrow IPC stream of one 3-D
-    detection per row answered with an Arrow stream (columns in docs/api.md). Arrow bodies
-    are answered by the same engine below FastAPI's routing (`app.calibrate.arrow_route`);
-    this route documents them and serves JSON."""
+    `CalibrateResponse` or `CalibrateResponse2D`), or an Arrow IPC stream of one detection
+    per row (3-D or, for a 2-D profile, 2-D columns) answered with an Arrow stream, or for a
+    2-D profile with `CalibrateResponse2D` when `Accept` takes only JSON (columns in
+    docs/api.md). Arrow bodies are answered by the same engine below FastAPI's routing
+    (`app.calibrate.arrow_route`); this route documents them and serves JSON."""
     body = await request.body()
     arrow = body_media(request, ARROW_STREAM) == ARROW_STREAM
-    accept(request, ARROW_STREAM if arrow else "application/json")
+    if arrow:   # answered in Arrow, or in JSON by a 2-D profile (the engine decides)
+        accept(request, ARROW_STREAM, "application/json")
+    else:
+        accept(request, "application/json")
     call = CalibrateCall("arrow" if arrow else "calibrate", body, query.profile,
                          query.ellipse_confidence,
-                         None if query.levels is None else tuple(query.levels))
+                         None if query.levels is None else tuple(query.levels),
+                         request.headers.get("accept", "") if arrow else "")
     return await _serve(calibrator, metrics, call)
 
 

@@ -49,11 +49,12 @@ class Profile2D:
         the logit columns a request's `logits` follow.
     score_mode : None (the detector's score is calibrated) or how `logits` read.
     image_size : (W, H) of every fit image when they all shared one (served when a request
-        names no image size and the score stage reads the box position), else None.
+        names no image size and serving reads it: `reads_image_size`), else None.
     matching : {"rule": "coco_iou", "iou_threshold": t}.
     score_calibration : `ScoreStage2D.to_dict()`.
-    regions : {"score", "min_sigma", "conformal": `ConformalBoxes.to_dict()`} or None (no
-        calibration part: no box regions).
+    regions : {"score", "min_sigma", "conformal": `ConformalBoxes.to_dict()`, and for
+        adaptive regions "scale": `EdgeErrorScale.to_dict()`} or None (no calibration part:
+        no box regions).
     report, provenance : JSON objects.
 
     Parsed once (not fields, not in the JSON): `score_stage` (`ScoreStage2D`),

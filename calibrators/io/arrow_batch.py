@@ -25,6 +25,9 @@ given), `label`, `label_index`,
 requested level (`semi_major`, `semi_minor` — null when unbounded —, `angle`, `guarantee`,
 `calibration_n` — null for gaussian regions), plus `region_group` for conformal regions; its
 schema metadata names the profile.
+
+The column readers (`check_known`, `check_no_nulls`, `column_numbers`, `fixed_column`) are
+shared with the 2-D batch format (`calibrators.io.arrow_boxes2d`).
 """
 
 from __future__ import annotations
@@ -73,8 +76,8 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> Detections:
     if "hypothesis_boxes" in names:
         kwargs["hyp_boxes"] = _box_rows("hypothesis_boxes", batch.column("hypothesis_boxes"))
     if "hypothesis_scores" in names:
-        kwargs["hyp_scores"] = _numbers("hypothesis_scores", batch.column("hypothesis_scores"),
-                                        (None,))
+        kwargs["hyp_scores"] = column_numbers("hypothesis_scores",
+                                              batch.column("hypothesis_scores"), (None,))
     if "ego_translation" in names:
         kwargs["ego_xy"] = _ego_xy(batch.column("ego_translation"))
     return Detections(frame_ids=frame, rows=np.arange(batch.num_rows, dtype=np.int64),
@@ -84,10 +87,7 @@ def batch_request(batch: pa.RecordBatch, classes: Sequence[str]) -> Detections:
 
 def _check_names(names: list[str]) -> None:
     """FieldError for an unknown or repeated column, or no `frame_id`."""
-    unknown = sorted(set(names) - KNOWN_COLUMNS)
-    if unknown:
-        raise FieldError(unknown[0], f"unknown column {unknown[0]!r}; the columns are "
-                                     f"{sorted(KNOWN_COLUMNS)}")
+    check_known(names, KNOWN_COLUMNS)
     if len(set(names)) != len(names):
         raise FieldError("body", f"repeated column names: {names}")
     if "frame_id" not in names:
@@ -100,7 +100,7 @@ def _frame_ids(batch: pa.RecordBatch) -> pa.Array:
     if not (pa.types.is_string(frame.type) or pa.types.is_large_string(frame.type)
             or pa.types.is_integer(frame.type)):
         raise FieldError("frame_id", f"frame_id must be strings or integers, got {frame.type}")
-    _no_nulls("frame_id", frame)
+    check_no_nulls("frame_id", frame)
     return frame
 
 
@@ -114,15 +114,15 @@ def _evidence(batch: pa.RecordBatch, names: list[str],
                                    f"got {evidence or 'none'}")
     kwargs: dict[str, np.ndarray] = {}
     if evidence[0] == "score":
-        kwargs["scores"] = _numbers("score", batch.column("score"), ())
+        kwargs["scores"] = column_numbers("score", batch.column("score"), ())
         if "label" not in names:
             raise FieldError("label", "a score column needs a label column (name or index)")
         kwargs["labels"] = _labels(batch.column("label"), classes)
     elif evidence[0] == "logits":
-        kwargs["logits"] = _numbers("logits", batch.column("logits"), (None,))
+        kwargs["logits"] = column_numbers("logits", batch.column("logits"), (None,))
     else:
-        kwargs["layer_logits"] = _numbers("layer_logits", batch.column("layer_logits"),
-                                          (None, None))
+        kwargs["layer_logits"] = column_numbers("layer_logits", batch.column("layer_logits"),
+                                                (None, None))
     if "label" in names and evidence[0] != "score":   # the class each detection asserts
         kwargs["labels"] = _labels(batch.column("label"), classes)
     return kwargs
@@ -133,9 +133,10 @@ def _boxes(batch: pa.RecordBatch, names: list[str]) -> dict[str, np.ndarray]:
     when given, as `Detections` arguments."""
     kwargs: dict[str, np.ndarray] = {}
     if "layer_boxes" in names:
-        kwargs["layer_boxes"] = _numbers("layer_boxes", batch.column("layer_boxes"), (None, 9))
+        kwargs["layer_boxes"] = column_numbers("layer_boxes", batch.column("layer_boxes"),
+                                               (None, 9))
     if "box" in names:
-        box = _numbers("box", batch.column("box"), (None,))
+        box = column_numbers("box", batch.column("box"), (None,))
         if box.shape[1] not in (7, 9):
             raise FieldError("box", f"box must have 9 values (x, y, z, w, l, h, yaw, vx, vy) "
                                     f"or 7 (no velocity), got {box.shape[1]}")
@@ -149,7 +150,7 @@ def _boxes(batch: pa.RecordBatch, names: list[str]) -> dict[str, np.ndarray]:
 
 def _covariances(arr: pa.Array) -> np.ndarray:
     """`[N, D, D]` covariances of a column of row-major `[D·D]` lists."""
-    flat = _numbers("covariance", arr, (None,))
+    flat = column_numbers("covariance", arr, (None,))
     dim = int(round(np.sqrt(flat.shape[1])))
     if dim * dim != flat.shape[1]:
         raise FieldError("covariance", f"covariance rows must hold D·D values (row-major "
@@ -159,7 +160,7 @@ def _covariances(arr: pa.Array) -> np.ndarray:
 
 def _ego_xy(arr: pa.Array) -> np.ndarray:
     """`[N, 2]` ego positions of an `ego_translation` column of 3 (or 2) values."""
-    ego = _numbers("ego_translation", arr, (None,))
+    ego = column_numbers("ego_translation", arr, (None,))
     if ego.shape[1] not in (2, 3):
         raise FieldError("ego_translation", f"ego_translation must have 3 (or 2) values, "
                                             f"got {ego.shape[1]}")
@@ -182,8 +183,8 @@ def calibrated_batch(res: CalibratedDetections, metadata: Mapping[str, Any]) -> 
     columns["score"] = pa.array(res.scores)
     columns["score_raw"] = pa.array(res.scores_raw)
     if res.class_scores is not None:
-        columns["class_scores"] = _fixed(res.class_scores)
-    columns["covariance"] = _fixed(res.covariances.reshape(n, -1))
+        columns["class_scores"] = fixed_column(res.class_scores)
+    columns["covariance"] = fixed_column(res.covariances.reshape(n, -1))
     columns["distance"] = pa.array(res.distances)
     if res.ellipses is not None:
         columns["ellipse"] = _ellipse_struct(res.ellipses)
@@ -210,16 +211,25 @@ def write_stream(batch: pa.RecordBatch) -> bytes:
 # -- columns ------------------------------------------------------------------------------------
 
 
-def _no_nulls(name: str, arr: pa.Array) -> None:
+def check_known(names: Sequence[str], known: frozenset[str]) -> None:
+    """FieldError naming the first (in sorted order) of `names` that is not a `known` column."""
+    unknown = sorted(set(names) - known)
+    if unknown:
+        raise FieldError(unknown[0], f"unknown column {unknown[0]!r}; the columns are "
+                                     f"{sorted(known)}")
+
+
+def check_no_nulls(name: str, arr: pa.Array) -> None:
+    """FieldError naming column `name` and the row of its first null, if it has one."""
     if arr.null_count:
         row = int(pc.index(pc.is_null(arr), True).as_py())
         raise FieldError(name, f"{name} has a null at row {row}", row=row)
 
 
-def _numbers(name: str, arr: pa.Array, shape: tuple[int | None, ...]) -> np.ndarray:
+def column_numbers(name: str, arr: pa.Array, shape: tuple[int | None, ...]) -> np.ndarray:
     """Float64 `[N, *shape]` of a number column (`()`) or of (nested) lists; None in `shape`
     is any length, the same in every row."""
-    _no_nulls(name, arr)
+    check_no_nulls(name, arr)
     values, dims = arr, []
     for want in shape:
         if not _is_list(values.type):
@@ -239,7 +249,7 @@ def _numbers(name: str, arr: pa.Array, shape: tuple[int | None, ...]) -> np.ndar
             values = values.flatten()
         if want is not None and width != want:
             raise FieldError(name, f"{name} rows must hold {want} values, got {width}")
-        _no_nulls(name, values)
+        check_no_nulls(name, values)
         dims.append(width)
     if not (pa.types.is_floating(values.type) or pa.types.is_integer(values.type)):
         raise FieldError(name, f"{name} must hold numbers (integer or float), got "
@@ -253,8 +263,8 @@ def _box_rows(name: str, arr: pa.Array) -> np.ndarray:
     (`[H·9]`, row-major)."""
     values = arr.type.value_type if _is_list(arr.type) else None
     if values is not None and _is_list(values):
-        return _numbers(name, arr, (None, 9))
-    flat = _numbers(name, arr, (None,))
+        return column_numbers(name, arr, (None, 9))
+    flat = column_numbers(name, arr, (None,))
     if flat.shape[1] % 9:
         raise FieldError(name, f"{name} rows must hold H·9 values (H boxes x y z w l h yaw "
                                f"vx vy, row-major) or H lists of 9, got {flat.shape[1]}")
@@ -268,7 +278,7 @@ def _is_list(kind: pa.DataType) -> bool:
 
 def _labels(arr: pa.Array, classes: Sequence[str]) -> np.ndarray:
     """Class indices `[N]` of a label column of names (or indices, checked by the library)."""
-    _no_nulls("label", arr)
+    check_no_nulls("label", arr)
     if pa.types.is_integer(arr.type):
         return arr.to_numpy(zero_copy_only=False).astype(np.int64)
     if not (pa.types.is_string(arr.type) or pa.types.is_large_string(arr.type)
@@ -287,7 +297,7 @@ def _arrow(values: Any) -> pa.Array:
     return values if isinstance(values, pa.Array | pa.ChunkedArray) else pa.array(values)
 
 
-def _fixed(values: np.ndarray) -> pa.FixedSizeListArray:
+def fixed_column(values: np.ndarray) -> pa.FixedSizeListArray:
     """`[N, W]` float64 as a fixed-size list column."""
     flat = np.ascontiguousarray(values, dtype=np.float64)
     return pa.FixedSizeListArray.from_arrays(pa.array(flat.reshape(-1)), flat.shape[1])

@@ -1,6 +1,7 @@
 """Hostile Arrow bodies on POST /v1/calibrate get 4xx naming the column (or 413 for the caps),
 never a 500: the four 500s and the three bombs of issue 25, compression within the inflated
-cap, identity columns copied out of the client's buffers and capped. The streams that crashed
+cap, identity columns copied out of the client's buffers and capped, seeded mutations of valid
+2-D batches sent to a 2-D profile. The streams that crashed
 the server or echoed its memory are sent to a real server in tests/e2e/test_arrow_bombs.py."""
 
 from __future__ import annotations
@@ -14,7 +15,15 @@ from calibrators.io.arrow_batch import ARROW_STREAM, read_stream
 from calibrators.io.arrow_headers import batch_header, inflated_bytes
 from calibrators.io.arrow_safe import MAX_ID_BYTES, plain_stream
 from tests import arrow_bombs as bombs
-from tests.arrow_mutator import buffer_roles, messages, request_batch, stream
+from tests.arrow_mutator import (
+    COMPRESSIONS,
+    buffer_roles,
+    messages,
+    mutate,
+    request_batch,
+    request_batch_2d,
+    stream,
+)
 
 CAL = "/v1/calibrate"
 ARROW = {"content-type": ARROW_STREAM}
@@ -118,3 +127,34 @@ def test_headers_and_plain_streams(dump_given):
     for bad in (b"", bytes(3), b"\x04\x00\x00\x00\xff\xff\xff\x7f", np.arange(8).tobytes()):
         with pytest.raises(ValueError):
             batch_header(bad)
+
+
+def test_mutated_2d_streams_are_never_a_5xx(client_2d, coco_pair):
+    """Seeded mutations (`tests.arrow_mutator.mutate`) of valid 2-D batches (every column
+    variant and codec, two record batches) to the 2-D profile, answered in Arrow or JSON: a
+    4xx with a field path, or a 200 whose stream validates in full; never a 5xx or a crash."""
+    records = [r for r in coco_pair[0] if r["image_id"] <= 12]
+    bases = []
+    for variant in range(3):
+        batch = request_batch_2d(records, variant=variant)
+        bases += [(stream([batch.slice(0, 7), batch.slice(7)], codec), batch.schema)
+                  for codec in COMPRESSIONS]
+    rng = np.random.default_rng(25)
+    seen: dict[int, int] = {}
+    for k in range(240):
+        data, schema = bases[int(rng.integers(len(bases)))]
+        bad, what = mutate(data, schema, rng)
+        accept = ARROW_STREAM if k % 2 else "application/json"
+        r = client_2d.post(CAL + "?profile=cam2d", content=bad,
+                           headers={**ARROW, "accept": accept})
+        seen[r.status_code] = seen.get(r.status_code, 0) + 1
+        assert r.status_code < 500, f"case {k} ({what}): {r.status_code} {r.text[:300]}"
+        if r.status_code != 200:
+            assert r.json()["detail"], f"case {k} ({what})"
+        elif accept == ARROW_STREAM:
+            with pa.ipc.open_stream(r.content) as reader:
+                for out in reader:
+                    out.validate(full=True)
+        else:
+            assert r.json()["kind"] == "boxes2d"
+    assert seen.get(200) and seen.get(422), seen   # both outcomes were reached

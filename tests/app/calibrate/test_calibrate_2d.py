@@ -1,6 +1,7 @@
 """POST /v1/calibrate with a 2-D profile (`images`), and a 2-D profile in the store: served
 as the library serves it, the other kind of body refused at the field that does not fit, bad
-detections refused at their field, the 3-D routes and the dashboard unharmed."""
+detections refused at their field, the 3-D routes and the dashboard unharmed. The 2-D profile
+`cam2d` (`client_2d`, `profile_2d`, `coco_pair`) comes from tests/app/calibrate/conftest.py."""
 
 from __future__ import annotations
 
@@ -21,30 +22,6 @@ from calibrators.boxes2d import (
     parse_instances,
     synthetic_coco,
 )
-from calibrators.io.arrow_batch import ARROW_STREAM
-
-
-@pytest.fixture(scope="module")
-def coco_pair():
-    results, instances = synthetic_coco(400, seed=0)
-    return results, instances
-
-
-@pytest.fixture(scope="module")
-def profile_2d(coco_pair) -> Profile2D:
-    results, instances = coco_pair
-    return fit_profile_2d(Detections2D.from_coco(results), parse_instances(instances),
-                          holdout=0.25)
-
-
-@pytest.fixture
-def client_2d(seeded: Settings, profile_2d: Profile2D) -> Iterator[TestClient]:
-    """The seeded store (`lidar`, `layers`: 3-D) with `cam2d` v1, a 2-D profile."""
-    store = Store(seeded.sqlalchemy_url, seeded.dumps_dir)
-    store.add_profile("cam2d", profile_2d.to_json())
-    store.close()
-    with TestClient(create_app(seeded)) as c:
-        yield c
 
 
 def _images(results: list[dict], n_images: int = 3) -> list[dict]:
@@ -118,10 +95,7 @@ def test_a_body_of_the_other_kind_is_refused_at_its_field(client_2d, coco_pair, 
     r = client_2d.post("/v1/calibrate", json={"profile": "cam2d", "images": images,
                                               "classes": ["car", "person"]})
     assert _loc(r) == ["body", "classes"]
-    # the 3-D routes name the profile
-    r = client_2d.post("/v1/calibrate?profile=cam2d", content=b"\xff",
-                       headers={"Content-Type": ARROW_STREAM, "Accept": ARROW_STREAM})
-    assert _loc(r) == ["query", "profile"] and "2-D (boxes2d) profile" in r.text
+    # the 3-D routes name the profile (Arrow bodies: tests/app/calibrate/test_arrow_2d.py)
     r = client_2d.post("/v1/calibrate/nuscenes?profile=cam2d", json={"results": {}})
     assert _loc(r) == ["query", "profile"]
     r = client_2d.get("/v1/profiles/cam2d/health")
@@ -152,7 +126,7 @@ def test_missing_layer_boxes_are_refused_at_the_first_detection(client_2d, coco_
             d.pop("layer_boxes")
     r = client_2d.post("/v1/calibrate", json={"profile": "cam2d", "images": images})
     assert _loc(r) == ["body", "images", 0, "detections", 0, "layer_boxes"]
-    assert "scaled by the spread" in r.text and "cam2d@1" in r.text
+    assert "read the spread" in r.text and "cam2d@1" in r.text
 
 
 def test_a_position_profile_needs_an_image_size(client_2d, coco_pair, profile_2d, seeded):
@@ -202,7 +176,7 @@ def default_2d(settings: Settings, profile_2d: Profile2D) -> Iterator[TestClient
 def test_a_2d_default_profile_starts_the_service_and_the_dashboard(default_2d, coco_pair):
     r = default_2d.get("/")
     assert r.status_code == 200
-    assert "2-D profile: panels not yet available" in r.text and "lidar@1" in r.text
+    assert "2-D boxes" in r.text and "Box regions: coverage" in r.text and "lidar@1" in r.text
     ready = default_2d.get("/readyz")
     assert ready.status_code == 200 and ready.json()["checks"]["profile"] == "lidar@1"
     r = default_2d.post("/v1/calibrate", json={"images": _images(coco_pair[0], 1)})
