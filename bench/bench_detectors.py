@@ -8,6 +8,11 @@ pass, what `detcal dump` and `/v1/detect` run per frame. Reference: the thesis's
 per frame (on a GPU), which is also the lidar detector's target on 2 CPU cores;
 the ratio column is time / 50 ms (below 1 meets the target).
 
+The image-plane detector (`detectors.boxer2d`) is timed the same way on a six-camera frame
+(the six images as one batch, their tensors built outside the timed call), with and without
+its decoding (`decode_image`: top-100 pairs per image and their per-layer boxes); its target
+is the same 50 ms per frame.
+
 Run: `.venv/bin/python -m bench.bench_detectors` (writes the "detectors" section of
 docs/benchmarks.md).
 """
@@ -96,9 +101,17 @@ def main(argv: list[str] | None = None) -> None:
                   f"{int(np.mean(n_points))} points, {model.config.n_queries} queries, "
                   f"ratio to {REFERENCE_MS:.0f} ms reference {t / REFERENCE_MS:.2f}")
 
+    image_row = _time_boxer2d(args.scenes, args.repeat)
+    if image_row is None:
+        skipped.append("boxer2d")
+    else:
+        rows.append(image_row)
+
     lines = ["## Detectors: forward time per frame (CPU, 2 threads, batch 1)", "",
              "Median over test-split scenes of `model([points])` under `torch.inference_mode`; "
              f"reference: {REFERENCE_MS:.0f} ms per frame (thesis, GPU; the lidar target).", "",
+             "boxer2d: a six-camera frame of 120 x 71 RGB + depth images, batch of 6, queries "
+             "per image; decoding: the top-100 pairs per image.", "",
              "| sensor | points/frame | queries | ms/frame | ratio to 50 ms | ms/frame with "
              "decoding (top-K + circle NMS) |",
              "|---|---:|---:|---:|---:|---:|"]
@@ -108,6 +121,42 @@ def main(argv: list[str] | None = None) -> None:
         lines += ["", f"Skipped (no shipped weights yet): {', '.join(skipped)}."]
     if not args.no_write:
         write_section("detectors", "\n".join(lines))
+
+
+def _time_boxer2d(scenes: int, repeat: int, warmup: int = 3
+                  ) -> tuple[str, str, int, float, float] | None:
+    """The boxer2d row (label, pixels per frame, queries per image, ms, ms with decoding):
+    medians over `scenes` test frames of `repeat` timed passes; None without its weights."""
+    from detectors.boxer2d import build_boxer2d, decode_image, frame_inputs
+    from detectors.boxer2d.weights import WEIGHTS_FILE
+    from detectors.sim import SPLITS, make_image_frame
+
+    if not WEIGHTS_FILE.exists():
+        print(f"boxer2d: skipped (no weights at {WEIGHTS_FILE})")
+        return None
+    model = build_boxer2d()
+    ms, ms_dec = [], []
+    for seed in list(SPLITS["test"])[:scenes]:
+        inputs = frame_inputs(make_image_frame(seed).images, model.config)
+        for decode, out in ((False, ms), (True, ms_dec)):
+            def run(decode: bool = decode, inputs: torch.Tensor = inputs) -> None:
+                result = model(inputs)
+                if decode:
+                    for i in range(inputs.shape[0]):
+                        decode_image(result, i, model.config)
+            with torch.inference_mode():
+                for _ in range(warmup):
+                    run()
+                times = []
+                for _ in range(repeat):
+                    t0 = time.perf_counter()
+                    run()
+                    times.append((time.perf_counter() - t0) * 1000)
+            out.append(statistics.median(times))
+    t, t_dec = statistics.median(ms), statistics.median(ms_dec)
+    print(f"boxer2d: {t:.1f} ms/frame (six cameras), {t_dec:.1f} ms with decoding, ratio to "
+          f"{REFERENCE_MS:.0f} ms reference {t / REFERENCE_MS:.2f}")
+    return ("boxer2d (six cameras)", "6 x 120 x 71 px", model.config.n_queries, t, t_dec)
 
 
 def _candidate(text: str) -> tuple[str, Path]:
