@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -49,6 +50,12 @@ def time_forward(model: Detector, points: torch.Tensor, repeat: int,
             postprocess(out, max_detections=model.config.n_queries, decode=DECODINGS[0],
                         classes=classes)
 
+    return median_ms(run, repeat, warmup)
+
+
+def median_ms(run: Callable[[], object], repeat: int, warmup: int) -> float:
+    """Median wall time in ms of `repeat` calls of `run()` under inference mode, after
+    `warmup` untimed ones."""
     with torch.inference_mode():
         for _ in range(warmup):
             run()
@@ -144,15 +151,7 @@ def _time_boxer2d(scenes: int, repeat: int, warmup: int = 3
                 if decode:
                     for i in range(inputs.shape[0]):
                         decode_image(result, i, model.config)
-            with torch.inference_mode():
-                for _ in range(warmup):
-                    run()
-                times = []
-                for _ in range(repeat):
-                    t0 = time.perf_counter()
-                    run()
-                    times.append((time.perf_counter() - t0) * 1000)
-            out.append(statistics.median(times))
+            out.append(median_ms(run, repeat, warmup))
     t, t_dec = statistics.median(ms), statistics.median(ms_dec)
     print(f"boxer2d: {t:.1f} ms/frame (six cameras), {t_dec:.1f} ms with decoding, ratio to "
           f"{REFERENCE_MS:.0f} ms reference {t / REFERENCE_MS:.2f}")

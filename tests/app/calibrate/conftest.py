@@ -35,11 +35,16 @@ def profile_2d(coco_pair) -> Profile2D:
                           holdout=0.25)
 
 
+def serving(settings: Settings, name: str, profile: Profile2D) -> Iterator[TestClient]:
+    """A client of the app over `settings`' store with `profile` added as `name`."""
+    store = Store(settings.sqlalchemy_url, settings.dumps_dir)
+    store.add_profile(name, profile.to_json())
+    store.close()
+    with TestClient(create_app(settings)) as c:
+        yield c
+
+
 @pytest.fixture
 def client_2d(seeded: Settings, profile_2d: Profile2D) -> Iterator[TestClient]:
     """The seeded store (`lidar`, `layers`: 3-D) with `cam2d` v1, a 2-D profile."""
-    store = Store(seeded.sqlalchemy_url, seeded.dumps_dir)
-    store.add_profile("cam2d", profile_2d.to_json())
-    store.close()
-    with TestClient(create_app(seeded)) as c:
-        yield c
+    yield from serving(seeded, "cam2d", profile_2d)

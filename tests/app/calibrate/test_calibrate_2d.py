@@ -22,6 +22,7 @@ from calibrators.boxes2d import (
     parse_instances,
     synthetic_coco,
 )
+from tests.app.calibrate.conftest import serving
 
 
 def _images(results: list[dict], n_images: int = 3) -> list[dict]:
@@ -166,11 +167,7 @@ def test_the_store_lists_both_kinds_and_3d_requests_still_serve(client_2d, detec
 @pytest.fixture
 def default_2d(settings: Settings, profile_2d: Profile2D) -> Iterator[TestClient]:
     """A store whose default profile name (`lidar`) holds a 2-D profile."""
-    store = Store(settings.sqlalchemy_url, settings.dumps_dir)
-    store.add_profile("lidar", profile_2d.to_json())
-    store.close()
-    with TestClient(create_app(settings)) as c:
-        yield c
+    yield from serving(settings, "lidar", profile_2d)
 
 
 def test_a_2d_default_profile_starts_the_service_and_the_dashboard(default_2d, coco_pair):
