@@ -32,6 +32,10 @@ SCORE_METHODS: tuple[str, ...] = ("temperature", "class_temperature", "platt", "
 COV_METHODS: tuple[str, ...] = ("depth", "shrinkage")
 #: Uncertainty regions: χ²₂ radii of a Gaussian, or split-conformal radii per class × range.
 REGION_METHODS: tuple[str, ...] = ("gaussian", "conformal")
+#: What the conformal radii are calibrated on: the calibration part's true positives under
+#: the Σ' fit on the training part (`split`), or every fit true positive, each part scored
+#: under the Σ' fit on the other (`cross`, served with the Σ' fit on the whole fit part).
+REGION_CALIBRATIONS: tuple[str, ...] = ("split", "cross")
 #: What a stored profile calibrates: `3d` boxes (a `CalibrationProfile`, whose JSON has no
 #: `kind` key) or image-plane `boxes2d` (a `calibrators.boxes2d.Profile2D`, `"kind": "boxes2d"`).
 PROFILE_KINDS: tuple[str, ...] = ("3d", "boxes2d")

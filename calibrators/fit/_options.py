@@ -17,6 +17,7 @@ from calibrators.core.errors import OptionError
 from calibrators.core.vocab import (
     COV_METHODS,
     COV_SOURCE_CHOICES,
+    REGION_CALIBRATIONS,
     REGION_METHODS,
     SCORE_METHODS,
     check_dims,
@@ -75,6 +76,10 @@ class FitOptions:
     training-conditional radius at this δ. region_delta: None, or the
     training-conditional conformal radii (each served cell covers its level with probability
     >= 1 - region_delta over the calibration draw); `calibrators.regions` explains both.
+    region_calibration: `split` (the conformal radii from the calibration part's true
+    positives under the Σ' fit on the training part) or `cross` (from every fit true positive:
+    each part's scores under the Σ' fit on the other part, the radii served with the Σ' fit on
+    the whole fit part; `calibrators.fit._cross`).
     """
 
     threshold: float = _opt(MATCH_THRESHOLD, "matching distance in m", float)
@@ -125,6 +130,12 @@ class FitOptions:
                                      "1 - floor_delta (none: only where a test shows its "
                                      "group's radius too small)", float, nullable=True)
 
+    region_calibration: str = _opt("split", "conformal regions: radii from the calibration "
+                                   "part's true positives (split), or from every fit true "
+                                   "positive, each part scored under the covariance fit on "
+                                   "the other and served with the one fit on all (cross)",
+                                   str, REGION_CALIBRATIONS)
+
     def __post_init__(self) -> None:
         set_ = object.__setattr__
         set_(self, "threshold", _number("threshold", self.threshold))
@@ -157,6 +168,10 @@ class FitOptions:
             if getattr(self, name) not in ("auto", *choices):
                 raise OptionError(name, f"{name} must be one of {['auto', *choices]}, got "
                                         f"{getattr(self, name)!r}")
+        if self.region_calibration not in REGION_CALIBRATIONS:
+            raise OptionError("region_calibration", f"region_calibration must be one of "
+                                                    f"{list(REGION_CALIBRATIONS)}, got "
+                                                    f"{self.region_calibration!r}")
         set_(self, "calibration", _number("calibration", self.calibration))
         if not 0.0 <= self.calibration < 1.0:
             raise OptionError("calibration", f"calibration must be a fraction of frames in "

@@ -22,7 +22,9 @@
    of the det_hyp_boxes, `none`), then `Σ + k_c·d·I` or
    `s_c·Σ + k_c·d·I` per predicted class with BEV distance from the ego;
 7. region stage: split-conformal radii per class × distance bin on the calibration part
-   (its frames were not used for Σ'), or the Gaussian χ²₂ radii;
+   (its frames were not used for Σ'), or the Gaussian χ²₂ radii; with
+   `region_calibration='cross'`, on every fit true positive, each part scored under the Σ'
+   fit on the other, served with the Σ' fit on the whole fit part (`_cross`);
 8. the before/after summary (`calibrators.evaluation`) on the fit part and the held-out part,
    with every candidate's held-out score in the report's `selection`.
 
@@ -50,6 +52,7 @@ from calibrators.evaluation import (
     match_dump,
     summarize,
 )
+from calibrators.fit._cross import cross_fit_regions, with_covariance
 from calibrators.fit._options import FitOptions
 from calibrators.fit._region_stage import (
     CovarianceFit,
@@ -104,8 +107,8 @@ def fit_profile(dump: Dump, options: FitOptions | None = None, *,
         dump, fit_part, held_part, calib, matched.tp, dump_sha256, opts))
 
     report_progress("regions", 0.5)
-    profile, region = _with_regions(profile, fit_part, matched, train, calib, opts, conformal,
-                                    report_progress)
+    profile, cov, region = _with_regions(profile, fit_part, matched, train, calib, opts,
+                                         conformal, cov, report_progress)
     profile = versioned(profile)
     report = _report(profile, fit_part, held_part, matched, opts,
                      selection_of(scores, cov, region, tuple(dump.classes)), report_progress)
@@ -147,20 +150,37 @@ def _matched(fit_part: Dump, threshold: float) -> MatchResult:
 
 def _with_regions(profile: CalibrationProfile, fit_part: Dump, matched: MatchResult,
                   train: tuple[Dump, MatchResult], calib: tuple[Dump, MatchResult] | None,
-                  opts: FitOptions, conformal: bool, report_progress: Progress
-                  ) -> tuple[CalibrationProfile, RegionFit | None]:
+                  opts: FitOptions, conformal: bool, cov: CovarianceFit,
+                  report_progress: Progress
+                  ) -> tuple[CalibrationProfile, CovarianceFit, RegionFit | None]:
     """The profile with its region stage and (with `other_sources`) the other covariance
-    sources' stages, and the primary region fit."""
-    region = fit_region_stage(
-        calib, None if calib is None else apply_profile(calib[0], profile).covariances, opts.dims,
-        opts.region_method if conformal else "gaussian", opts.min_group, opts.distance_edges,
-        cell_floor=opts.cell_floors, delta=opts.region_delta, floor_delta=opts.floor_delta)
-    profile = replace(profile, regions=_regions(region))
+    sources' stages, the primary covariance stage it serves and the primary region fit."""
+    cov, region = _source_regions(profile, cov, (fit_part, matched), train, calib, opts,
+                                  conformal)
+    profile = replace(with_covariance(profile, cov), regions=_regions(region))
     if opts.other_sources:   # serve whatever covariance evidence a request carries
         report_progress("other sources", 0.55)
         others = _other_sources(profile, fit_part, matched, train, calib, opts, conformal)
         profile = replace(profile, sources=others or None)
-    return profile, region
+    return profile, cov, region
+
+
+def _source_regions(profile: CalibrationProfile, cov: CovarianceFit,
+                    fit_all: tuple[Dump, MatchResult], train: tuple[Dump, MatchResult],
+                    calib: tuple[Dump, MatchResult] | None, opts: FitOptions, conformal: bool
+                    ) -> tuple[CovarianceFit, RegionFit | None]:
+    """The covariance stage served and the region stage of `profile`'s own covariance source,
+    whose `Σ'` is `cov` (fit on `train` when `conformal`): split conformal on `calib`, or
+    with `region_calibration='cross'` cross-fitted on every fit true positive and served with
+    the `Σ'` fit on `fit_all` (`calibrators.fit._cross`)."""
+    method = opts.region_method if conformal else "gaussian"
+    if (conformal and opts.region_calibration == "cross" and calib is not None
+            and "x" in opts.dims and "y" in opts.dims):
+        return cross_fit_regions(profile, cov, fit_all, train, calib, opts, method)
+    return cov, fit_region_stage(
+        calib, None if calib is None else apply_profile(calib[0], profile).covariances,
+        opts.dims, method, opts.min_group, opts.distance_edges, cell_floor=opts.cell_floors,
+        delta=opts.region_delta, floor_delta=opts.floor_delta)
 
 
 def _report(profile: CalibrationProfile, fit_part: Dump, held_part: Dump | None,
@@ -213,7 +233,8 @@ def selection_of(scores: ScoreFit, cov: CovarianceFit, region: RegionFit | None,
             "covariance": {"chosen": cov.method, "candidates": cov.candidates},
             "regions": None if region is None else {
                 "chosen": region.method, "calibration_tps": region.n_calibration,
-                "cells": _cell_guarantees(region, classes)}}
+                "cells": _cell_guarantees(region, classes),
+                **({"calibration": "cross"} if region.calibration == "cross" else {})}}
 
 
 def _cell_guarantees(region: RegionFit, classes: tuple[str, ...] | None
@@ -225,7 +246,11 @@ def _cell_guarantees(region: RegionFit, classes: tuple[str, ...] | None
 
 
 def _regions(region: RegionFit | None) -> dict[str, Any] | None:
-    return None if region is None else {"method": region.method, "conformal": region.conformal}
+    """A profile's `regions` stage; cross-fitted radii say so (`calibration`: cross)."""
+    if region is None:
+        return None
+    cross = {"calibration": "cross"} if region.calibration == "cross" else {}
+    return {"method": region.method, "conformal": region.conformal, **cross}
 
 
 def check_fit_input(dump: Dump, options: FitOptions) -> str:
@@ -294,18 +319,10 @@ def _other_sources(profile: CalibrationProfile, fit_part: Dump, matched: MatchRe
             continue                      # the dump cannot provide this source
         cov = fit_covariance_stage(train if conformal else (fit_part, matched), train, calib,
                                    opts.dims, source, opts.cov_method, opts.min_samples)
-        stage = source_stage(cov, None)
-        as_primary = replace(profile, cov_source=source, depth_k=cov.depth_k,
-                             pooled_k=cov.pooled_k, fallback_classes=cov.fallback_classes,
-                             covariance_scaling=stage["covariance_scaling"], regions=None,
+        as_primary = replace(with_covariance(profile, cov), cov_source=source, regions=None,
                              sources=None)
-        region = fit_region_stage(
-            calib, None if calib is None else apply_profile(calib[0], as_primary).covariances,
-            opts.dims, opts.region_method if conformal else "gaussian", opts.min_group,
-            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
-            floor_delta=opts.floor_delta)
-        stage["regions"] = _regions(region)
-        out[source] = stage
+        out[source] = source_stage(*_source_regions(as_primary, cov, (fit_part, matched),
+                                                    train, calib, opts, conformal))
     return out
 
 

@@ -12,7 +12,7 @@ radii keep their finite-sample guarantee. `gaussian` keeps the χ²₂ radii.
 from __future__ import annotations
 
 import warnings
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Any
 
 import numpy as np
@@ -27,7 +27,7 @@ from calibrators.regions import ConformalRegions, xy_mahalanobis
 
 __all__ = ["SCALE_BOUNDS", "CovarianceFit", "RegionFit", "conformal_region_fit",
            "covariance_fit", "fit_covariance_stage", "fit_region_stage", "make_scaler",
-           "regression_nll_or_none"]
+           "region_fit_of_scores", "regression_nll_or_none", "tp_scores"]
 
 #: Shrinkage factors searched (a layer spread of mm² may need s in the thousands).
 SCALE_BOUNDS = (1e-3, 1e4)
@@ -54,14 +54,16 @@ class CovarianceFit:
 @dataclass(frozen=True)
 class RegionFit:
     """The fitted region stage: `method`, the conformal radii's dict form (None: gaussian),
-    the calibration true positives it was fit on, and per class × distance cell what the
+    the calibration true positives it was fit on, per class × distance cell what the
     conformal regions guarantee at the summary's levels (`ConformalRegions.guarantees`, classes
-    by index; None: gaussian)."""
+    by index; None: gaussian), and what the radii were calibrated on (`split`: the calibration
+    part; `cross`: every fit true positive, `calibrators.fit._cross`)."""
 
     method: str
     conformal: dict[str, Any] | None
     n_calibration: int
     cells: list[dict[str, Any]] | None = None
+    calibration: str = "split"
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON types (`conformal` is already `ConformalRegions.to_dict()`)."""
@@ -163,18 +165,40 @@ def fit_region_stage(calib: tuple[Dump, MatchResult] | None, covariances: np.nda
     x or y (no ellipse to serve). `cell_floor`, `delta`, `floor_delta`: of `ConformalRegions`."""
     if "x" not in dims or "y" not in dims:
         return None
-    n_tp = 0 if calib is None else int(np.count_nonzero(calib[1].tp))
-    if method == "gaussian" or (method == "auto" and n_tp < min_group):
-        return RegionFit("gaussian", None, n_tp)
-    if calib is None or covariances is None or n_tp == 0:
-        raise ValueError("region_method='conformal' needs a calibration part with true "
-                         "positives (calibration > 0)")
-    dump, matched = calib
+    scores = None if calib is None or covariances is None else tp_scores(calib, covariances,
+                                                                           dims)
+    return region_fit_of_scores(scores, 0 if calib is None else len(calib[0].classes), method,
+                                min_group, distance_edges, cell_floor=cell_floor, delta=delta,
+                                floor_delta=floor_delta)
+
+
+def tp_scores(part: tuple[Dump, MatchResult], covariances: np.ndarray, dims: tuple[str, ...]
+              ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The Mahalanobis distances (x, y block), class indices and distances `[M]` of the true
+    positives of `part` under `covariances [N, D, D]`, the Σ' of its N detections."""
+    dump, matched = part
     tp = np.asarray(matched.tp, dtype=bool)
     scores = xy_mahalanobis(tp_residuals(dump, matched, dims), covariances[tp], dims)
-    return conformal_region_fit(scores, dump.det_labels[tp], dump.det_distance[tp],
-                                len(dump.classes), min_group, distance_edges,
-                                cell_floor=cell_floor, delta=delta, floor_delta=floor_delta)
+    return scores, dump.det_labels[tp], dump.det_distance[tp]
+
+
+def region_fit_of_scores(scores: tuple[np.ndarray, np.ndarray, np.ndarray] | None,
+                         n_classes: int, method: str, min_group: int,
+                         distance_edges: tuple[float, ...], *, cell_floor: bool = False,
+                         delta: float | None = None, floor_delta: float | None = None,
+                         calibration: str = "split") -> RegionFit:
+    """The region stage of calibration true positives' (scores, class indices, distances)
+    `[M]` (None: no calibration part): gaussian when `method` says so or, with `auto`, below
+    `min_group` of them; else conformal (`conformal_region_fit`), recording `calibration`."""
+    n_tp = 0 if scores is None else int(scores[0].shape[0])
+    if method == "gaussian" or (method == "auto" and n_tp < min_group):
+        return RegionFit("gaussian", None, n_tp)
+    if scores is None or n_tp == 0:
+        raise ValueError("region_method='conformal' needs a calibration part with true "
+                         "positives (calibration > 0)")
+    fit = conformal_region_fit(*scores, n_classes, min_group, distance_edges,
+                               cell_floor=cell_floor, delta=delta, floor_delta=floor_delta)
+    return replace(fit, calibration=calibration)
 
 
 def conformal_region_fit(scores: np.ndarray, labels: np.ndarray, distances: np.ndarray,

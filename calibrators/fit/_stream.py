@@ -111,8 +111,15 @@ def check_stream_options(options: FitOptions, n_fit_frames: int | None = None,
     choosing `score_method='auto'` among candidates on softmax scores, where the global
     temperature's candidate needs every row's softmax at the training part's T (`auto` with
     no calibration part, `calibration=0` or fewer than 2 fit frames, `n_fit_frames`, means
-    the temperature alone)."""
+    the temperature alone), and the cross-fitted conformal radii (`region_calibration`
+    'cross'), whose training-part scores need a second pass over the parts."""
     no_calibration = options.calibration <= 0 or (n_fit_frames is not None and n_fit_frames < 2)
+    if options.region_calibration == "cross":
+        raise OptionError("region_calibration", "the streamed fit cannot reproduce "
+                          "region_calibration='cross': it keeps the calibration part's true "
+                          "positives only, and scoring the training part's under the "
+                          "covariance fit on the calibration part takes a second pass; use "
+                          "region_calibration='split' or fit in memory")
     if options.score_method == "auto" and score_mode == "softmax" and not no_calibration:
         raise OptionError("score_method", "the streamed fit cannot reproduce "
                           "score_method='auto' on softmax scores: its temperature candidate "

@@ -190,7 +190,11 @@ def _honest_overview(reports: Sequence[SensorReport]) -> str:
 #: Where the per-cell figures on held-out scenes are (written by `bench/bench_cells.py`).
 CELLS_LINK = ("Per class × distance cell, with sampling intervals, on 3,000 scenes of the "
               "`holdout` split that no fit or choice used: [cells.md](cells.md), written by "
-              "`bench/bench_cells.py --label` (the commands are in its docstring).")
+              "`bench/bench_cells.py --label` (the commands are in its docstring). Its "
+              "sections `cross <sensor> holdout` set the default split-conformal radii "
+              "against cross-fitted ones (`region_calibration=cross`: every val frame "
+              "calibrates) over four calibration-split seeds, written by "
+              "`bench/bench_cross_regions.py --label`.")
 
 
 def _levels(values: Sequence[float]) -> str:
