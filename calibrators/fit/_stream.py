@@ -78,9 +78,11 @@ from calibrators.fit._region_stage import (
     RegionFit,
 )
 from calibrators.fit._score_stage import ScoreFit, candidate_names
+from calibrators.fit._stream_cross import stream_cross_regions
 from calibrators.fit._stream_scores import ScoreTables, stream_scores
 from calibrators.fit._stream_stages import (
     calibration_frames,
+    refit_covariance,
     stream_covariance,
     stream_regions,
 )
@@ -111,15 +113,8 @@ def check_stream_options(options: FitOptions, n_fit_frames: int | None = None,
     choosing `score_method='auto'` among candidates on softmax scores, where the global
     temperature's candidate needs every row's softmax at the training part's T (`auto` with
     no calibration part, `calibration=0` or fewer than 2 fit frames, `n_fit_frames`, means
-    the temperature alone), and the cross-fitted conformal radii (`region_calibration`
-    'cross'), whose training-part scores need a second pass over the parts."""
+    the temperature alone)."""
     no_calibration = options.calibration <= 0 or (n_fit_frames is not None and n_fit_frames < 2)
-    if options.region_calibration == "cross":
-        raise OptionError("region_calibration", "the streamed fit cannot reproduce "
-                          "region_calibration='cross': it keeps the calibration part's true "
-                          "positives only, and scoring the training part's under the "
-                          "covariance fit on the calibration part takes a second pass; use "
-                          "region_calibration='split' or fit in memory")
     if options.score_method == "auto" and score_mode == "softmax" and not no_calibration:
         raise OptionError("score_method", "the streamed fit cannot reproduce "
                           "score_method='auto' on softmax scores: its temperature candidate "
@@ -166,7 +161,15 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     tps = None if calib is None else [f.calib for f in firsts]
     covs = {s: stream_covariance(ds.classes, s, firsts, tps, opts) for s in sources}
     report_progress("regions", 0.5)
-    regions = stream_regions(ds.classes, opts, covs, tps)
+    if opts.region_calibration == "cross" and tps is not None and opts.region_method != \
+            "gaussian":   # radii on every fit true positive: a second pass (_stream_cross)
+        refit = {s: [refit_covariance(ds.classes, s, firsts, tps, opts, covs[s].method, w)
+                     for w in (False, True)] for s in sources}
+        covs, regions = stream_cross_regions(ds.classes, opts, covs, {
+            s: r[0] for s, r in refit.items()}, {s: r[1] for s, r in refit.items()}, tps,
+            chunks, mapper)
+    else:
+        regions = stream_regions(ds.classes, opts, covs, tps)
     provenance = make_provenance(
         dump_sha256=ds.source_sha256, n_frames=ds.n_frames, n_detections=ds.n_detections,
         n_ground_truth=ds.n_ground_truth, n_fit_frames=ds.n_frames - int(held.sum()),

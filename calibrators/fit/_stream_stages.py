@@ -13,7 +13,7 @@ from typing import Any
 import numpy as np
 
 from calibrators.core.vocab import COV_METHODS
-from calibrators.covariance import BinSums, add_depth_term, fit_inputs, near_zero_q
+from calibrators.covariance import BinSums, fit_inputs, near_zero_q
 from calibrators.data import held_out_frames
 from calibrators.fit._chunks import CalibrationTPs, FirstPass
 from calibrators.fit._options import FitOptions
@@ -26,9 +26,10 @@ from calibrators.fit._region_stage import (
     make_scaler,
     regression_nll_or_none,
 )
+from calibrators.fit._stream_cross import served_covariances
 from calibrators.regions import xy_mahalanobis
 
-__all__ = ["calibration_frames", "stream_covariance", "stream_regions"]
+__all__ = ["calibration_frames", "refit_covariance", "stream_covariance", "stream_regions"]
 
 
 def calibration_frames(frame_ids: np.ndarray, held: np.ndarray, opts: FitOptions
@@ -63,8 +64,8 @@ def stream_regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, C
         if tps is None or n == 0:
             raise ValueError("region_method='conformal' needs a calibration part with true "
                              "positives (calibration > 0)")
-        scores = np.concatenate([xy_mahalanobis(p.residuals, _served(p, source, cov, classes,
-                                                                     opts), opts.dims)
+        scores = np.concatenate([xy_mahalanobis(p.residuals, served_covariances(
+                                     p, source, cov, classes, opts.dims), opts.dims)
                                  for p in tps])
         out[source] = conformal_region_fit(
             scores, np.concatenate([p.labels for p in tps]),
@@ -72,19 +73,6 @@ def stream_regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, C
             opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
             floor_delta=opts.floor_delta)
     return out
-
-
-def _served(part: CalibrationTPs, source: str, cov: CovarianceFit, classes: tuple[str, ...],
-            opts: FitOptions) -> np.ndarray:
-    """Σ' `[M, D, D]` of a part's calibration true positives, as a served call scales it:
-    `Σ + k·d·I`, or `s·Σ + k·d·I` with shrinkage (Σ = 0 for source none)."""
-    n, dim = len(part.labels), len(opts.dims)
-    raw = part.covariances[source]
-    base = np.zeros((n, dim, dim)) if raw is None else raw
-    if cov.method == "shrinkage":
-        base = base * np.array([cov.scale[c] for c in classes])[part.labels][:, None, None]
-    k = np.array([cov.depth_k[c] for c in classes])[part.labels]
-    return add_depth_term(base, part.distances, k)
 
 
 def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstPass],
@@ -98,8 +86,7 @@ def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstP
     names = list(COV_METHODS) if method == "auto" else [method]
     if source == "none" or (method == "auto" and tps is None):
         names = ["depth"] if method == "auto" else names   # no Σ to shrink / nothing to choose
-    train = (reduce(add, (f.bins[source] for f in firsts)),
-             sum(f.near_q[source] for f in firsts))
+    train = _training_sums(firsts, source)
     candidates: dict[str, dict[str, float | None]] = {}
     if tps is not None and len(names) > 1:
         for name in names:
@@ -115,6 +102,26 @@ def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstP
                                                                        opts), strict=True))
     return covariance_fit(_binned_scaler(chosen, source, classes, *fit_on, opts), classes,
                           chosen, candidates)
+
+
+def refit_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstPass],
+                     tps: list[CalibrationTPs], opts: FitOptions, method: str,
+                     with_training: bool) -> CovarianceFit:
+    """The `method` scaler of `source` fit on the calibration true positives' statistics,
+    with the training part's added when `with_training` (the whole fit part)."""
+    fit_on = _calibration_sums(tps, source, classes, opts)
+    if with_training:
+        fit_on = tuple(a + b for a, b in zip(_training_sums(firsts, source), fit_on,
+                                             strict=True))
+    return covariance_fit(_binned_scaler(method, source, classes, *fit_on, opts), classes,
+                          method)
+
+
+def _training_sums(firsts: list[FirstPass], source: str) -> tuple[BinSums, np.ndarray]:
+    """The depth statistics and `near_zero_q` sums of the training part's true positives,
+    summed over the parts' first passes."""
+    return (reduce(add, (f.bins[source] for f in firsts)),
+            sum(f.near_q[source] for f in firsts))
 
 
 def _held_out_nll(scaler: Any, tps: list[CalibrationTPs], source: str,

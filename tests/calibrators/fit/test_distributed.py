@@ -59,19 +59,21 @@ def test_dask_default_fit_equals_the_in_memory_one(tmp_path):
 
     dump = synthetic_dump(n_frames=60, n_gt_per_frame=12, seed=22)
     save_parquet(tmp_path / "ds", dump, rows_per_part=150)
-    options = {"min_group": 15}
     loaded = load_parquet(tmp_path / "ds")
-    in_memory = fit_profile(loaded, **options)
     with dask_client("local:2") as client:
-        streamed = fit_profile_stream(tmp_path / "ds", client=client, **options)
-    assert streamed.region_method == "conformal"
-    assert_close_tree(streamed.report["selection"]["score"],
-                      in_memory.report["selection"]["score"], "score")
-    assert np.abs(apply_profile(loaded, streamed).scores
-                  - apply_profile(loaded, in_memory).scores).max() < 1e-6
-    assert_close_tree(streamed.regions, in_memory.regions, "regions", rel=1e-4)
-    for source, stage in in_memory.sources.items():
-        assert_close_tree(streamed.sources[source]["regions"], stage["regions"], source)
+        # and with cross-fitted radii: the second pass runs on the workers too
+        for options in ({"min_group": 15}, {"min_group": 15, "region_calibration": "cross"}):
+            in_memory = fit_profile(loaded, **options)
+            streamed = fit_profile_stream(tmp_path / "ds", client=client, **options)
+            assert streamed.region_method == "conformal"
+            assert_close_tree(streamed.report["selection"]["score"],
+                              in_memory.report["selection"]["score"], "score")
+            assert np.abs(apply_profile(loaded, streamed).scores
+                          - apply_profile(loaded, in_memory).scores).max() < 1e-6
+            assert_close_tree(streamed.regions, in_memory.regions, "regions", rel=1e-4)
+            for source, stage in in_memory.sources.items():
+                assert_close_tree(streamed.sources[source]["regions"], stage["regions"],
+                                  source)
 
 
 def test_a_corrupt_part_read_by_a_worker_is_named(tmp_path):

@@ -1,7 +1,7 @@
 """Cross-fitted conformal radii (`FitOptions.region_calibration='cross'`): every fit true
 positive calibrates, each part scored under the Σ' fit on the other; the radii are served with
 the Σ' fit on the whole fit part. Split profiles are unchanged, old ones serve as before, and
-the streamed fit refuses the option.
+the streamed fit reproduces it (tests/calibrators/fit/test_fit_stream.py).
 
 The world of the coverage tests: synthetic cars and buses whose near-range buses (0-15 m, a
 rare cell: about 40 true positives in 400 val frames) have 1.6 times wider residuals than
@@ -24,8 +24,6 @@ from calibrators import (
     tp_residuals,
 )
 from calibrators.data import Dump, synthetic_dump
-from calibrators.fit import check_stream_options, fit_profile_stream
-from calibrators.io import save_parquet
 from calibrators.regions import xy_mahalanobis
 
 CLASSES = ("car", "bus")
@@ -140,12 +138,3 @@ def test_a_bad_value_names_the_option():
     with pytest.raises(OptionError) as info:
         FitOptions(region_calibration="jackknife")
     assert info.value.field == "region_calibration"
-
-
-def test_the_streamed_fit_refuses_cross_and_names_the_option(tmp_path):
-    save_parquet(tmp_path / "ds", synthetic_dump(n_frames=10, seed=12))
-    for call in (lambda: check_stream_options(FitOptions(region_calibration="cross")),
-                 lambda: fit_profile_stream(tmp_path / "ds", region_calibration="cross")):
-        with pytest.raises(OptionError, match="cannot reproduce region_calibration") as err:
-            call()
-        assert err.value.field == "region_calibration"

@@ -129,6 +129,13 @@ CONFORMAL = {"score_method": "temperature", "cov_method": "depth"}
     ("softmax", {"score_method": "temperature", "cov_method": "shrinkage", "min_group": 15,
                  "holdout": 0.1}),
     ("sigmoid", {"score_method": "temperature", "region_method": "gaussian"}),   # auto, whole
+    # cross-fitted radii: a second pass scores the training part under the calibration Σ'
+    ("sigmoid", {**CONFORMAL, "region_method": "conformal", "min_group": 20,
+                 "region_calibration": "cross"}),
+    ("softmax", {"score_method": "temperature", "cov_method": "shrinkage", "min_group": 15,
+                 "holdout": 0.1, "region_calibration": "cross", "cov_source": "layers"}),
+    ("sigmoid", {"score_method": "temperature", "min_group": 20, "region_calibration": "cross",
+                 "floor_delta": None}),
 ])
 def test_streamed_conformal_regions_equal_the_in_memory_ones(tmp_path, mode, options):
     """The calibration part is drawn by frame token as in memory; the covariance candidates
