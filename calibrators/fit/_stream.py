@@ -26,7 +26,8 @@ options)` gives, T and every k to 1e-6 relative, holding one part of the dataset
    summed depth statistics (plus the `near_zero_q` sums shrinkage needs), `auto` choosing by
    the regression NLL of the calibration part's true positives (kept by the first pass: a
    residual, a raw Σ per source and two numbers each), whose Mahalanobis scores under the
-   fitted Σ' give the conformal radii, exactly as in memory;
+   fitted Σ' give the conformal radii, exactly as in memory (with `region_calibration`
+   'cross', a second pass scores the training part's true positives: `_stream_cross`);
 6. the profile is assembled as `fit_profile` assembles it; its report summarises a seeded
    sample of at most `report_detections` detections of whole fit (and held-out) frames,
    all of them when they fit (the report then equals the in-memory one), and says so.
