@@ -47,9 +47,10 @@ from calibrators.core.version import detcal_version
 
 log = logging.getLogger("detcal.app")
 
-DESCRIPTION = """Post-hoc calibration of DETR-family 3D detectors: fit a versioned calibration
-profile (score calibration, covariance scaling, coverage regions) on a validation dump, then
-turn raw detections into calibrated scores, covariances and uncertainty ellipses.
+DESCRIPTION = """Post-hoc calibration of DETR-family 3D and 2-D detectors: fit a versioned
+calibration profile (score calibration, covariance scaling, coverage regions) on a validation
+dump or a COCO results file, then turn raw detections into calibrated scores, covariances and
+uncertainty ellipses, or calibrated 2-D boxes with conformal box regions.
 Admin endpoints need `Authorization: Bearer <DETCAL_ADMIN_TOKEN>`."""
 
 

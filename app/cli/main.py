@@ -34,8 +34,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     parser = argparse.ArgumentParser(
         prog="detcal",
-        description="Post-hoc calibration of DETR-family 3D detectors: fit profiles on "
-                    "validation dumps, evaluate, calibrate detections, serve the API.")
+        description="Post-hoc calibration of DETR-family 3D and 2-D detectors: fit profiles "
+                    "on validation dumps or COCO files, evaluate, calibrate detections, serve "
+                    "the API.")
     parser.add_argument("--version", action="version", version=f"%(prog)s {detcal_version()}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     missing = []
