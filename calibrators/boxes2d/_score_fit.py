@@ -33,6 +33,7 @@ from calibrators.boxes2d._fit_options import SCORE_METHODS_2D
 from calibrators.boxes2d._labels import MatchLabels
 from calibrators.boxes2d._position import PositionCalibrator
 from calibrators.core.checks import check_choice
+from calibrators.core.selection import choose_lowest_nll
 from calibrators.scores import (
     TemperatureScaler,
     make_score_calibrator,
@@ -128,15 +129,15 @@ def fit_score_stage_2d(data: ScoreData, train: np.ndarray, calib: np.ndarray | N
     candidates: dict[str, dict[str, float]] = {}
     if calib is not None and len(names) > 1:
         tp = data.match.true_positive
-        for name in names:
+        def held_out(name: str) -> dict[str, float]:
             p = _fit(name, data, train, min_samples).transform(
                 data.z[calib], data.labels[calib], data.image_size[calib],
                 data.detections.bbox[calib])
-            candidates[name] = {
-                "nll": metrics.classification_nll(p, tp[calib]),
-                "ece": metrics.expected_calibration_error(p, tp[calib]),
-                "d_ece": selection_dece(data, calib, p)}
-        chosen = min(candidates, key=lambda n: candidates[n]["nll"])
+            return {"nll": metrics.classification_nll(p, tp[calib]),
+                    "ece": metrics.expected_calibration_error(p, tp[calib]),
+                    "d_ece": selection_dece(data, calib, p)}
+
+        chosen, candidates = choose_lowest_nll(names, held_out)
     else:
         chosen = names[0]
     both = train if calib is None else train | calib

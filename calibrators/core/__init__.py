@@ -7,6 +7,8 @@
 - `json_safe`: the one conversion of numpy values to strict JSON.
 - `bins`: binning of confidences and outcomes shared by metrics and calibrators, and the
   `to_dict` mixin of metric results.
+- `selection`: `choose_lowest_nll`, how every `auto` option of a fit chooses among its
+  candidates.
 
 Import the modules themselves (`from calibrators.core.vocab import BOX_FIELDS`).
 """

@@ -19,6 +19,7 @@ import numpy as np
 
 from calibrators import metrics
 from calibrators.core.json_safe import to_jsonable
+from calibrators.core.selection import choose_lowest_nll
 from calibrators.core.vocab import COV_METHODS
 from calibrators.covariance import DepthScaler, ShrinkageDepthScaler, raw_covariances
 from calibrators.data import Dump
@@ -100,12 +101,10 @@ def fit_covariance_stage(fit_on: tuple[Dump, MatchResult], train: tuple[Dump, Ma
     if calib is not None and len(names) > 1:
         res, cov, dist, cls = _tp_data(*train, dims, source)
         c_res, c_cov, c_dist, c_cls = _tp_data(*calib, dims, source)
-        for name in names:
-            scaler = _fit_scaler(name, min_samples, res, cov, dist, cls, source)
-            served = scaler.transform(c_cov, c_dist, c_cls)
-            candidates[name] = {"nll": regression_nll_or_none(c_res, served)}
-        chosen = min(names, key=lambda n: np.inf if candidates[n]["nll"] is None
-                     else candidates[n]["nll"])
+        chosen, candidates = choose_lowest_nll(names, lambda name: {
+            "nll": regression_nll_or_none(c_res, _fit_scaler(
+                name, min_samples, res, cov, dist, cls, source).transform(c_cov, c_dist,
+                                                                          c_cls))})
     else:
         chosen = names[0]
     scaler = _fit_scaler(chosen, min_samples, *_tp_data(*fit_on, dims, source), source)

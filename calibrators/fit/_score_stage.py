@@ -22,6 +22,7 @@ from scipy.special import expit
 
 from calibrators import metrics
 from calibrators.core.json_safe import to_jsonable
+from calibrators.core.selection import choose_lowest_nll
 from calibrators.core.vocab import SCORE_METHODS
 from calibrators.data import Dump
 from calibrators.evaluation import ts_labels, ts_logits
@@ -108,18 +109,18 @@ def choose_score_method(names: list[str], train: ScoreTable, calib: ScoreTable |
     candidates: dict[str, dict[str, float]] = {}
     on_train: dict[str, Any] = {}
     if calib is not None and len(names) > 1:
-        for name in names:
+        def held_out(name: str) -> dict[str, float]:
             if name == "temperature":
                 rows, p = calib.rows(), temperature_p()
             else:
                 on_train[name] = fitted = fit_classwise(name, train, min_samples)
                 rows = calib.rows(by_range=fitted.uses_distances)
                 p = _transform(fitted, rows)
-            candidates[name] = {
-                "nll": metrics.classification_nll(p, rows.hit, sample_weight=rows.weight),
-                "ece": metrics.expected_calibration_error(p, rows.hit,
-                                                          sample_weight=rows.weight)}
-        chosen = min(candidates, key=lambda n: candidates[n]["nll"])
+            return {"nll": metrics.classification_nll(p, rows.hit, sample_weight=rows.weight),
+                    "ece": metrics.expected_calibration_error(p, rows.hit,
+                                                              sample_weight=rows.weight)}
+
+        chosen, candidates = choose_lowest_nll(names, held_out)
     else:
         chosen = names[0]
     kappas: dict[float, float] = {}

@@ -12,6 +12,7 @@ from typing import Any
 
 import numpy as np
 
+from calibrators.core.selection import choose_lowest_nll
 from calibrators.core.vocab import COV_METHODS
 from calibrators.covariance import BinSums, fit_inputs, near_zero_q
 from calibrators.data import held_out_frames
@@ -89,11 +90,8 @@ def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstP
     train = _training_sums(firsts, source)
     candidates: dict[str, dict[str, float | None]] = {}
     if tps is not None and len(names) > 1:
-        for name in names:
-            scaler = _binned_scaler(name, source, classes, *train, opts)
-            candidates[name] = {"nll": _held_out_nll(scaler, tps, source, classes)}
-        chosen = min(names, key=lambda n: np.inf if candidates[n]["nll"] is None
-                     else candidates[n]["nll"])
+        chosen, candidates = choose_lowest_nll(names, lambda name: {"nll": _held_out_nll(
+            _binned_scaler(name, source, classes, *train, opts), tps, source, classes)})
     else:
         chosen = names[0]
     fit_on = train
