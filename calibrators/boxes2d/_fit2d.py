@@ -123,8 +123,8 @@ def check_fit_input_2d(detections: Detections2D, instances: CocoInstances,
     """Raise `FieldError` / `OptionError` naming what makes `detections` and `instances`
     unfit for a 2-D fit with `options` (an image or category the instances lack, logits
     without `score_mode` or the reverse, logits of the wrong width, scaled regions without
-    layer boxes); returns the region score the fit will use (`auto:<fallback>` for `auto`:
-    adaptive when the fitting part holds `MIN_SCALE_FIT` true positives, else the fallback).
+    layer boxes); returns the region score the fit will use (for `auto`, the one it falls
+    back to when the fitting part holds fewer than `MIN_SCALE_FIT` true positives).
     Front ends call it to refuse an upload before queueing a fit."""
     if not isinstance(instances, CocoInstances):
         raise FieldError("instances", "instances must be a CocoInstances (read_coco_instances)")
@@ -159,7 +159,7 @@ def _region_score(detections: Detections2D, opts: FitOptions2D) -> str:
         raise OptionError("region_score", "region_score='scaled' needs the detections' "
                                           "layer_boxes of L >= 2 decoder layers")
     if opts.region_score == "auto":
-        return "auto:scaled" if layered else "auto:additive"
+        return "scaled" if layered else "additive"
     return opts.region_score
 
 
@@ -167,14 +167,15 @@ def _regions(data: ScoreData, truth_bbox: np.ndarray, train: np.ndarray, calib: 
              score: str, opts: FitOptions2D, ids: tuple[int, ...]) -> dict[str, Any] | None:
     """The `regions` field: `ConformalBoxes` on the calibration part's true positives, their
     errors scaled by the edge-error scale fit on the fitting part's (adaptive), by the layer
-    spread (scaled) or not at all (additive). `score` is `_region_score`'s: `auto:<fallback>`
-    is adaptive when the fitting part holds `MIN_SCALE_FIT` true positives."""
+    spread (scaled) or not at all (additive). `score` is `_region_score`'s; with
+    `region_score='auto'` the regions are adaptive when the fitting part holds
+    `MIN_SCALE_FIT` true positives."""
     rows = calib & data.match.true_positive
     if not rows.any():
         return None
     fit_rows = train & data.match.true_positive
-    if score.startswith("auto:"):
-        score = "adaptive" if fit_rows.sum() >= MIN_SCALE_FIT else score[len("auto:"):]
+    if opts.region_score == "auto" and fit_rows.sum() >= MIN_SCALE_FIT:
+        score = "adaptive"
     elif score == "adaptive" and fit_rows.sum() < MIN_SCALE_FIT:
         raise OptionError("region_score", f"region_score='adaptive' fits its edge-error scale "
                           f"on the fitting part's true positives: {int(fit_rows.sum())} < "

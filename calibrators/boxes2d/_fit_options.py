@@ -9,8 +9,6 @@ flags and form fields from `describe()`. A bad value raises `OptionError` naming
 
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -18,7 +16,13 @@ from calibrators.boxes2d._box_scores import REGION_SCORES
 from calibrators.boxes2d._layer_spread import MIN_SIGMA
 from calibrators.core.errors import OptionError
 from calibrators.core.vocab import SCORE_METHODS, SCORE_MODES
-from calibrators.fit import OptionSpec, describe_options, options_from_dict
+from calibrators.fit import (
+    OptionSpec,
+    describe_options,
+    option_integer,
+    option_number,
+    options_from_dict,
+)
 
 __all__ = ["SCORE_METHODS_2D", "FitOptions2D"]
 
@@ -82,7 +86,7 @@ class FitOptions2D:
         set_(self, "iou_threshold", _fraction("iou_threshold", self.iou_threshold, 1.0, True))
         for name in ("holdout", "calibration"):
             set_(self, name, _fraction(name, getattr(self, name), 1.0, False))
-        set_(self, "seed", _integer("seed", self.seed, 0))
+        set_(self, "seed", option_integer("seed", self.seed, 0))
         for name, choices in (("score_method", ("auto", *SCORE_METHODS_2D)),
                               ("region_score", ("auto", *REGION_SCORES))):
             if getattr(self, name) not in choices:
@@ -91,12 +95,12 @@ class FitOptions2D:
         if self.score_mode is not None and self.score_mode not in SCORE_MODES:
             raise OptionError("score_mode", f"score_mode must be one of {list(SCORE_MODES)} "
                                             f"or none, got {self.score_mode!r}")
-        sigma = _number("min_sigma", self.min_sigma)
+        sigma = option_number("min_sigma", self.min_sigma)
         if sigma <= 0:
             raise OptionError("min_sigma", f"min_sigma must be > 0 pixels, got {sigma}")
         set_(self, "min_sigma", sigma)
-        set_(self, "min_samples", _integer("min_samples", self.min_samples, 1))
-        set_(self, "min_group", _integer("min_group", self.min_group, 1))
+        set_(self, "min_samples", option_integer("min_samples", self.min_samples, 1))
+        set_(self, "min_group", option_integer("min_group", self.min_group, 1))
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict; `FitOptions2D.from_dict` reads it back."""
@@ -114,25 +118,10 @@ class FitOptions2D:
         return describe_options(cls)
 
 
-def _number(name: str, value: Any) -> float:
-    if isinstance(value, bool) or not isinstance(value, numbers.Real):
-        raise OptionError(name, f"{name} must be a number, got {value!r}")
-    x = float(value)
-    if not math.isfinite(x):
-        raise OptionError(name, f"{name} must be finite, got {value!r}")
-    return x
-
-
 def _fraction(name: str, value: Any, high: float, closed: bool) -> float:
     """`value` as a number in [0, high] (`closed`) or [0, high), else an OptionError."""
-    x = _number(name, value)
+    x = option_number(name, value)
     if not (0.0 <= x <= high if closed else 0.0 <= x < high):
         interval = f"[0, {high:g}]" if closed else f"[0, {high:g})"
         raise OptionError(name, f"{name} must be in {interval}, got {x}")
     return x
-
-
-def _integer(name: str, value: Any, minimum: int) -> int:
-    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
-        raise OptionError(name, f"{name} must be an integer >= {minimum}, got {value!r}")
-    return int(value)

@@ -34,7 +34,7 @@ from calibrators.core.checks import (
 )
 from calibrators.core.errors import FieldError
 from calibrators.core.json_safe import to_jsonable
-from calibrators.scores import fit_logistic
+from calibrators.scores import fit_logistic, unfitted
 
 __all__ = ["PositionCalibrator"]
 
@@ -119,16 +119,11 @@ class PositionCalibrator:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> PositionCalibrator:
         """The fitted calibrator `to_dict` wrote; ValueError naming a missing or bad key."""
-        if not isinstance(data, dict):
-            raise ValueError(f"a position calibrator must be a dict, got {type(data).__name__}")
-        missing = [k for k in ("hyper", "n_classes", "coef", "pooled", "fallback_classes",
-                               "n_samples", "n_positives") if k not in data]
+        self = unfitted(cls, data, "position calibrator")
+        missing = [k for k in ("n_classes", "coef", "pooled", "fallback_classes", "n_samples",
+                               "n_positives") if k not in data]
         if missing:
             raise ValueError(f"position calibrator dict lacks {missing[0]!r}")
-        try:
-            self = cls(**data["hyper"])
-        except TypeError as exc:
-            raise ValueError(f"hyper has a bad key: {exc}") from None
         n_terms = 2 + len(check_features(self.features))
         c = check_n_bins("n_classes", data["n_classes"], minimum=1)
         coef = as_float_array("coef", data["coef"], ndim=2)

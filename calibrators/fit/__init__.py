@@ -13,6 +13,8 @@ from calibrators.fit._options import (
     FitOptions,
     OptionSpec,
     describe_options,
+    option_integer,
+    option_number,
     options_from_dict,
 )
 from calibrators.fit._pipeline import check_fit_input, fit_profile
@@ -23,4 +25,5 @@ from calibrators.fit._stream import check_stream_options, fit_profile_stream
 __all__ = ["CovarianceFit", "FitOptions", "Mapper", "OptionError", "OptionSpec", "RegionFit",
            "ScoreFit", "check_fit_input",
            "check_stream_options", "dask_client", "describe_options", "fit_profile",
-           "fit_profile_stream", "options_from_dict", "parse_dask_spec"]
+           "fit_profile_stream", "option_integer", "option_number", "options_from_dict",
+           "parse_dask_spec"]

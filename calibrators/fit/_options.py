@@ -24,7 +24,7 @@ from calibrators.core.vocab import (
 )
 from calibrators.regions import check_distance_edges
 
-__all__ = ["FitOptions", "OptionSpec"]
+__all__ = ["FitOptions", "OptionSpec", "option_integer", "option_number"]
 
 
 
@@ -138,7 +138,7 @@ class FitOptions:
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
-        set_(self, "threshold", _number("threshold", self.threshold))
+        set_(self, "threshold", option_number("threshold", self.threshold))
         if self.threshold <= 0:
             raise OptionError("threshold", f"threshold must be a finite distance > 0 m, got "
                                            f"{self.threshold}")
@@ -149,17 +149,17 @@ class FitOptions:
         if self.cov_source not in COV_SOURCE_CHOICES:
             raise OptionError("cov_source", f"cov_source must be one of "
                                             f"{list(COV_SOURCE_CHOICES)}, got {self.cov_source!r}")
-        set_(self, "holdout", _number("holdout", self.holdout))
+        set_(self, "holdout", option_number("holdout", self.holdout))
         if not 0.0 <= self.holdout < 1.0:
             raise OptionError("holdout", f"holdout must be a fraction of frames in [0, 1), got "
                                          f"{self.holdout}")
         if self.min_score is not None:
-            set_(self, "min_score", _number("min_score", self.min_score))
+            set_(self, "min_score", option_number("min_score", self.min_score))
             if not 0.0 <= self.min_score <= 1.0:
                 raise OptionError("min_score", f"min_score must be a probability in [0, 1], "
                                                f"got {self.min_score}")
-        set_(self, "min_samples", _integer("min_samples", self.min_samples, minimum=1))
-        set_(self, "seed", _integer("seed", self.seed, minimum=0))
+        set_(self, "min_samples", option_integer("min_samples", self.min_samples, minimum=1))
+        set_(self, "seed", option_integer("seed", self.seed, minimum=0))
         if not isinstance(self.modulation, bool):
             raise OptionError("modulation", f"modulation must be True or False, got "
                                             f"{self.modulation!r}")
@@ -172,24 +172,24 @@ class FitOptions:
             raise OptionError("region_calibration", f"region_calibration must be one of "
                                                     f"{list(REGION_CALIBRATIONS)}, got "
                                                     f"{self.region_calibration!r}")
-        set_(self, "calibration", _number("calibration", self.calibration))
+        set_(self, "calibration", option_number("calibration", self.calibration))
         if not 0.0 <= self.calibration < 1.0:
             raise OptionError("calibration", f"calibration must be a fraction of frames in "
                                              f"[0, 1), got {self.calibration}")
-        set_(self, "min_group", _integer("min_group", self.min_group, minimum=1))
+        set_(self, "min_group", option_integer("min_group", self.min_group, minimum=1))
         set_(self, "distance_edges", _edges(self.distance_edges))
         for name in ("other_sources", "cell_floors"):
             if not isinstance(getattr(self, name), bool):
                 raise OptionError(name, f"{name} must be True or False, got "
                                         f"{getattr(self, name)!r}")
         if self.score_shrink is not None:
-            set_(self, "score_shrink", _number("score_shrink", self.score_shrink))
+            set_(self, "score_shrink", option_number("score_shrink", self.score_shrink))
             if not 0.0 <= self.score_shrink < math.inf:
                 raise OptionError("score_shrink", f"score_shrink must be a finite number >= 0 "
                                                   f"or none, got {self.score_shrink}")
         for name in ("region_delta", "floor_delta"):
             if getattr(self, name) is not None:
-                set_(self, name, _number(name, getattr(self, name)))
+                set_(self, name, option_number(name, getattr(self, name)))
                 if not 0.0 < getattr(self, name) < 1.0:
                     raise OptionError(name, f"{name} must be in (0, 1) or none, got "
                                             f"{getattr(self, name)}")
@@ -213,7 +213,9 @@ class FitOptions:
         return describe_options(cls)
 
 
-def _number(name: str, value: Any) -> float:
+def option_number(name: str, value: Any) -> float:
+    """`value` as a finite float (numpy scalars too, not a bool or a string), else an
+    OptionError naming the option `name`."""
     if isinstance(value, bool | str):
         raise OptionError(name, f"{name} must be a number, got {value!r}")
     try:   # numpy scalars too
@@ -225,7 +227,9 @@ def _number(name: str, value: Any) -> float:
     return x
 
 
-def _integer(name: str, value: Any, minimum: int) -> int:
+def option_integer(name: str, value: Any, minimum: int) -> int:
+    """`value` as an int >= `minimum` (a whole number of any numeric type, not a bool or a
+    string), else an OptionError naming the option `name`."""
     try:
         as_int = int(value)
         whole = not isinstance(value, bool | str) and as_int == value

@@ -5,8 +5,9 @@ in-memory fit computes them (`calibrators.fit._cross`), part by part:
    (`stream_covariance`); the calibration part's true positives are scored under it (their
    residuals and raw Σ came with the first pass);
 2. the same method is fit on the calibration part's true positives alone (their summed depth
-   statistics, `_calibration_sums`), and a second pass over the parts scores each part's
-   training true positives under it (`training_scores`: 14 bytes a true positive come back);
+   statistics, `_calibration_sums`), and one second pass over the parts scores each part's
+   training true positives under it, every source at once (`training_scores`: 14 bytes a
+   true positive and source come back);
 3. `ConformalRegions` is fit on the pooled scores, and the Σ' served is the one fit on the
    training and the calibration statistics summed (the whole fit part).
 """
@@ -43,21 +44,25 @@ def served_covariances(part: CalibrationTPs, source: str, cov: CovarianceFit,
     return add_depth_term(base, part.distances, k)
 
 
-def training_scores(chunk: Chunk, source: str, cov: CovarianceFit, classes: tuple[str, ...]
-                    ) -> Scores:
-    """The Mahalanobis scores (x, y block), class indices and distances `[M]` of the part's
-    training-part true positives (fit frames outside the calibration part) under `cov`."""
+def training_scores(chunk: Chunk, covs: dict[str, CovarianceFit], classes: tuple[str, ...]
+                    ) -> dict[str, Scores]:
+    """Per covariance source of `covs`, the Mahalanobis scores (x, y block), class indices and
+    distances `[M]` of the part's training-part true positives (fit frames outside the
+    calibration part) under its Σ' (the part is read and matched once for all sources)."""
     _, fit, matched = prepare(chunk)
     tp = np.asarray(matched.tp, dtype=bool)
     assert chunk.calib is not None
     train = ~chunk.calib[~chunk.held][fit.det_frame][tp]      # [TPs]
-    raw = raw_covariances(fit, source, chunk.dims)
-    part = CalibrationTPs(tp_residuals(fit, matched, chunk.dims)[train],
-                          {source: None if raw is None else raw[tp][train]},
-                          fit.det_distance[tp][train], fit.det_labels[tp][train])
-    scores = xy_mahalanobis(part.residuals, served_covariances(part, source, cov, classes,
-                                                               chunk.dims), chunk.dims)
-    return scores, part.labels, part.distances
+    residuals = tp_residuals(fit, matched, chunk.dims)[train]
+    labels, distances = fit.det_labels[tp][train], fit.det_distance[tp][train]
+    out = {}
+    for source, cov in covs.items():
+        raw = raw_covariances(fit, source, chunk.dims)
+        part = CalibrationTPs(residuals, {source: None if raw is None else raw[tp][train]},
+                              distances, labels)
+        out[source] = (xy_mahalanobis(residuals, served_covariances(
+            part, source, cov, classes, chunk.dims), chunk.dims), labels, distances)
+    return out
 
 
 def stream_cross_regions(classes: tuple[str, ...], opts: FitOptions,
@@ -68,17 +73,16 @@ def stream_cross_regions(classes: tuple[str, ...], opts: FitOptions,
     """Per covariance source, the Σ' served (`served`, with `covs`' candidates) and the
     cross-fitted region stage (module docstring): the calibration true positives `tps` (per
     part) under `covs`, the training ones under `on_calib` (a second pass over `chunks`)."""
+    if "x" not in opts.dims or "y" not in opts.dims:   # no ellipse to serve
+        return dict(covs), dict.fromkeys(covs)
+    train = list(mapper.imap(training_scores, chunks, covs=on_calib, classes=classes))
     out_covs, out_regions = {}, {}
     for source, cov in covs.items():
-        if "x" not in opts.dims or "y" not in opts.dims:
-            out_covs[source], out_regions[source] = cov, None   # no ellipse to serve
-            continue
         calib = [(xy_mahalanobis(p.residuals, served_covariances(p, source, cov, classes,
                                                                  opts.dims), opts.dims),
                   p.labels, p.distances) for p in tps]
-        train = list(mapper.imap(training_scores, chunks, source=source,
-                                 cov=on_calib[source], classes=classes))
-        pooled = tuple(np.concatenate(arrays) for arrays in zip(*calib, *train, strict=True))
+        pooled = tuple(np.concatenate(arrays) for arrays in zip(
+            *calib, *(part[source] for part in train), strict=True))
         out_regions[source] = region_fit_of_scores(
             pooled, len(classes), opts.region_method, opts.min_group, opts.distance_edges,
             cell_floor=opts.cell_floors, delta=opts.region_delta, floor_delta=opts.floor_delta,

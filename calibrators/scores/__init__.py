@@ -15,7 +15,7 @@
   mergeable counts of a `ScoreTable` (`_score_table`) when the data come in parts.
 """
 
-from calibrators.scores._calibrator import ClasswiseCalibrator
+from calibrators.scores._calibrator import ClasswiseCalibrator, unfitted
 from calibrators.scores._class_temperature import ClassTemperatureScaler
 from calibrators.scores._histogram import HistogramBinning
 from calibrators.scores._isotonic import IsotonicCalibrator
@@ -60,12 +60,12 @@ from calibrators.scores._temperature_nll import (
     softmax_nll,
 )
 
-__all__ = ["D_WIDTH", "EXACT_ROWS", "SCORE_CALIBRATION_METHODS", "SIGMOID_BINS", "SUBSAMPLE_MIN",
-           "RANGE_Z_WIDTH", "Z_WIDTH",
-           "ClassTemperatureScaler", "ClasswiseCalibrator", "HistogramBinning",
-           "IsotonicCalibrator", "KnotCalibrator", "PlattScaler", "ScoreRows", "ScoreTable",
-           "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities", "fit_logistic",
-           "isotonic_knots", "label_logit", "label_scores", "make_score_calibrator",
-           "modulate_logits", "monotone_knots", "predict", "probabilities_logits",
-           "probability_logit", "row_max", "score_calibrator_from_dict", "sigmoid_nll",
-           "softmax_mean", "softmax_nll", "subsample_rows", "subsample_start"]
+__all__ = ["D_WIDTH", "EXACT_ROWS", "RANGE_Z_WIDTH", "SCORE_CALIBRATION_METHODS", "SIGMOID_BINS",
+           "SUBSAMPLE_MIN", "Z_WIDTH", "ClassTemperatureScaler", "ClasswiseCalibrator",
+           "HistogramBinning", "IsotonicCalibrator", "KnotCalibrator", "PlattScaler", "ScoreRows",
+           "ScoreTable", "SigmoidBins", "SoftmaxSums", "TemperatureScaler", "class_probabilities",
+           "fit_logistic", "isotonic_knots", "label_logit", "label_scores",
+           "make_score_calibrator", "modulate_logits", "monotone_knots", "predict",
+           "probabilities_logits", "probability_logit", "row_max", "score_calibrator_from_dict",
+           "sigmoid_nll", "softmax_mean", "softmax_nll", "subsample_rows", "subsample_start",
+           "unfitted"]
