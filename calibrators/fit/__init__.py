@@ -18,12 +18,12 @@ from calibrators.fit._options import (
     options_from_dict,
 )
 from calibrators.fit._pipeline import check_fit_input, fit_profile
-from calibrators.fit._region_stage import CovarianceFit, RegionFit
+from calibrators.fit._region_stage import CovarianceFit, RegionFit, conformal_region_fit
 from calibrators.fit._score_stage import ScoreFit
 from calibrators.fit._stream import check_stream_options, fit_profile_stream
 
 __all__ = ["CovarianceFit", "FitOptions", "Mapper", "OptionError", "OptionSpec", "RegionFit",
-           "ScoreFit", "check_fit_input",
+           "ScoreFit", "check_fit_input", "conformal_region_fit",
            "check_stream_options", "dask_client", "describe_options", "fit_profile",
            "fit_profile_stream", "option_integer", "option_number", "options_from_dict",
            "parse_dask_spec"]

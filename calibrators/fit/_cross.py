@@ -59,8 +59,7 @@ def cross_fit_regions(profile: CalibrationProfile, cov: CovarianceFit, fit_all: 
                                              ).covariances, dims)]
     pooled = tuple(np.concatenate(arrays) for arrays in zip(*scored, strict=True))
     region = region_fit_of_scores(pooled, len(profile.classes), method, opts.min_group,
-                                  opts.distance_edges, cell_floor=opts.cell_floors,
-                                  delta=opts.region_delta, floor_delta=opts.floor_delta,
+                                  opts.distance_edges, **opts.conformal_options(),
                                   calibration="cross")
     served = fit_covariance_stage(fit_all, train, None, dims, source, cov.method,
                                   opts.min_samples)

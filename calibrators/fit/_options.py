@@ -76,10 +76,11 @@ class FitOptions:
     training-conditional radius at this δ. region_delta: None, or the
     training-conditional conformal radii (each served cell covers its level with probability
     >= 1 - region_delta over the calibration draw); `calibrators.regions` explains both.
-    region_calibration: `split` (the conformal radii from the calibration part's true
-    positives under the Σ' fit on the training part) or `cross` (from every fit true positive:
-    each part's scores under the Σ' fit on the other part, the radii served with the Σ' fit on
-    the whole fit part; `calibrators.fit._cross`).
+    cell_ceilings: with cell floors, a cell whose own scores show its group's radius too wide
+    for it is served its own radius. region_calibration: `cross` (the conformal radii from
+    every fit true positive: each part's scores under the Σ' fit on the other part, the radii
+    served with the Σ' fit on the whole fit part; `calibrators.fit._cross`) or `split` (from
+    the calibration part's true positives under the Σ' fit on the training part).
     """
 
     threshold: float = _opt(MATCH_THRESHOLD, "matching distance in m", float)
@@ -130,11 +131,15 @@ class FitOptions:
                                      "1 - floor_delta (none: only where a test shows its "
                                      "group's radius too small)", float, nullable=True)
 
-    region_calibration: str = _opt("split", "conformal regions: radii from the calibration "
+    region_calibration: str = _opt("cross", "conformal regions: radii from the calibration "
                                    "part's true positives (split), or from every fit true "
                                    "positive, each part scored under the covariance fit on "
                                    "the other and served with the one fit on all (cross)",
                                    str, REGION_CALIBRATIONS)
+    cell_ceilings: bool = _opt(True, "conformal regions with cell floors: a class × distance "
+                               "cell whose own true positives show its group's radius "
+                               "covering more than the level is served its own conformal "
+                               "radius", bool)
 
     def __post_init__(self) -> None:
         set_ = object.__setattr__
@@ -178,7 +183,7 @@ class FitOptions:
                                              f"[0, 1), got {self.calibration}")
         set_(self, "min_group", option_integer("min_group", self.min_group, minimum=1))
         set_(self, "distance_edges", _edges(self.distance_edges))
-        for name in ("other_sources", "cell_floors"):
+        for name in ("other_sources", "cell_floors", "cell_ceilings"):
             if not isinstance(getattr(self, name), bool):
                 raise OptionError(name, f"{name} must be True or False, got "
                                         f"{getattr(self, name)!r}")
@@ -193,6 +198,12 @@ class FitOptions:
                 if not 0.0 < getattr(self, name) < 1.0:
                     raise OptionError(name, f"{name} must be in (0, 1) or none, got "
                                             f"{getattr(self, name)}")
+
+    def conformal_options(self) -> dict[str, Any]:
+        """The keyword options of the conformal radii (`calibrators.fit.conformal_region_fit`,
+        `ConformalRegions`) that these options ask for."""
+        return {"cell_floor": self.cell_floors, "delta": self.region_delta,
+                "floor_delta": self.floor_delta, "cell_ceiling": self.cell_ceilings}
 
     def to_dict(self) -> dict[str, Any]:
         """Plain JSON-able dict (dims as a list); `FitOptions.from_dict` reads it back."""

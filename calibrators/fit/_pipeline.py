@@ -179,8 +179,7 @@ def _source_regions(profile: CalibrationProfile, cov: CovarianceFit,
         return cross_fit_regions(profile, cov, fit_all, train, calib, opts, method)
     return cov, fit_region_stage(
         calib, None if calib is None else apply_profile(calib[0], profile).covariances,
-        opts.dims, method, opts.min_group, opts.distance_edges, cell_floor=opts.cell_floors,
-        delta=opts.region_delta, floor_delta=opts.floor_delta)
+        opts.dims, method, opts.min_group, opts.distance_edges, **opts.conformal_options())
 
 
 def _report(profile: CalibrationProfile, fit_part: Dump, held_part: Dump | None,

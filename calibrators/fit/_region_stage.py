@@ -157,18 +157,19 @@ def regression_nll_or_none(res: np.ndarray, cov: np.ndarray) -> float | None:
 def fit_region_stage(calib: tuple[Dump, MatchResult] | None, covariances: np.ndarray | None,
                      dims: tuple[str, ...], method: str, min_group: int,
                      distance_edges: tuple[float, ...], *, cell_floor: bool = False,
-                     delta: float | None = None, floor_delta: float | None = None
-                     ) -> RegionFit | None:
+                     delta: float | None = None, floor_delta: float | None = None,
+                     cell_ceiling: bool = False) -> RegionFit | None:
     """The region stage from the calibration part and `covariances [N, D, D]`, the fitted
     Σ' of its detections (None when there is no calibration part). None when `dims` lack
-    x or y (no ellipse to serve). `cell_floor`, `delta`, `floor_delta`: of `ConformalRegions`."""
+    x or y (no ellipse to serve). `cell_floor`, `delta`, `floor_delta`, `cell_ceiling`: of
+    `ConformalRegions` (`FitOptions.conformal_options()`)."""
     if "x" not in dims or "y" not in dims:
         return None
     scores = None if calib is None or covariances is None else tp_scores(calib, covariances,
                                                                            dims)
     return region_fit_of_scores(scores, 0 if calib is None else len(calib[0].classes), method,
                                 min_group, distance_edges, cell_floor=cell_floor, delta=delta,
-                                floor_delta=floor_delta)
+                                floor_delta=floor_delta, cell_ceiling=cell_ceiling)
 
 
 def tp_scores(part: tuple[Dump, MatchResult], covariances: np.ndarray, dims: tuple[str, ...]
@@ -185,7 +186,7 @@ def region_fit_of_scores(scores: tuple[np.ndarray, np.ndarray, np.ndarray] | Non
                          n_classes: int, method: str, min_group: int,
                          distance_edges: tuple[float, ...], *, cell_floor: bool = False,
                          delta: float | None = None, floor_delta: float | None = None,
-                         calibration: str = "split") -> RegionFit:
+                         cell_ceiling: bool = False, calibration: str = "split") -> RegionFit:
     """The region stage of calibration true positives' (scores, class indices, distances)
     `[M]` (None: no calibration part): gaussian when `method` says so or, with `auto`, below
     `min_group` of them; else conformal (`conformal_region_fit`), recording `calibration`."""
@@ -196,20 +197,23 @@ def region_fit_of_scores(scores: tuple[np.ndarray, np.ndarray, np.ndarray] | Non
         raise ValueError("region_method='conformal' needs a calibration part with true "
                          "positives (calibration > 0)")
     fit = conformal_region_fit(*scores, n_classes, min_group, distance_edges,
-                               cell_floor=cell_floor, delta=delta, floor_delta=floor_delta)
+                               cell_floor=cell_floor, delta=delta, floor_delta=floor_delta,
+                               cell_ceiling=cell_ceiling)
     return replace(fit, calibration=calibration)
 
 
 def conformal_region_fit(scores: np.ndarray, labels: np.ndarray, distances: np.ndarray,
                          n_classes: int, min_group: int, distance_edges: tuple[float, ...], *,
                          cell_floor: bool = False, delta: float | None = None,
-                         floor_delta: float | None = None) -> RegionFit:
+                         floor_delta: float | None = None, cell_ceiling: bool = False
+                         ) -> RegionFit:
     """The conformal `RegionFit` of the calibration true positives' Mahalanobis `scores [M]`,
     class indices `labels [M]` and `distances [M]` (m), over classes 0..n_classes-1 (the
     in-memory and the streamed fit share it)."""
     regions = ConformalRegions(distance_edges=(0.0, *distance_edges, float("inf")),
                                min_group=min_group, cell_floor=cell_floor, delta=delta,
-                               floor_delta=floor_delta if cell_floor else None)
+                               floor_delta=floor_delta if cell_floor else None,
+                               cell_ceiling=cell_ceiling and cell_floor)
     regions.fit(scores, labels, distances, all_classes=list(range(n_classes)))
     return RegionFit("conformal", regions.to_dict(), int(scores.shape[0]),
                      regions.guarantees(SUMMARY_LEVELS))

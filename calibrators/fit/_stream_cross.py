@@ -85,7 +85,6 @@ def stream_cross_regions(classes: tuple[str, ...], opts: FitOptions,
             *calib, *(part[source] for part in train), strict=True))
         out_regions[source] = region_fit_of_scores(
             pooled, len(classes), opts.region_method, opts.min_group, opts.distance_edges,
-            cell_floor=opts.cell_floors, delta=opts.region_delta, floor_delta=opts.floor_delta,
-            calibration="cross")
+            **opts.conformal_options(), calibration="cross")
         out_covs[source] = replace(served[source], candidates=cov.candidates)
     return out_covs, out_regions

@@ -71,8 +71,7 @@ def stream_regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, C
         out[source] = conformal_region_fit(
             scores, np.concatenate([p.labels for p in tps]),
             np.concatenate([p.distances for p in tps]), len(classes), opts.min_group,
-            opts.distance_edges, cell_floor=opts.cell_floors, delta=opts.region_delta,
-            floor_delta=opts.floor_delta)
+            opts.distance_edges, **opts.conformal_options())
     return out
 
 

@@ -75,6 +75,8 @@ class ConformalRegions:
         own scores as a floor: the larger of its own radius and the group's (`_groups`).
     floor_delta : None, or in (0, 1): with `cell_floor`, at levels >= 0.8 every cell floor
         serves at least the cell's own training-conditional radius at this δ (`_groups`).
+    cell_ceiling : with `cell_floor`, a cell whose own scores show its group's radius
+        over-covering it is served its own radius instead (`_groups`).
 
     Attributes set by `fit`: `classes_` (list), `edges_ [B + 1]`, `counts_ [C, B]` (scores
     per cell), `groups_` (list of `ConformalGroup`), `serving_ [C + 1, B]` (group index per
@@ -84,7 +86,7 @@ class ConformalRegions:
     def __init__(self, distance_edges: Sequence[float] = DEFAULT_DISTANCE_EDGES,
                  min_group: int = 100, n_exact: int = 500, max_ranks: int = 600,
                  delta: float | None = None, cell_floor: bool = False,
-                 floor_delta: float | None = None) -> None:
+                 floor_delta: float | None = None, cell_ceiling: bool = False) -> None:
         self.distance_edges = distance_edges
         self.min_group = min_group
         self.n_exact = n_exact
@@ -92,6 +94,7 @@ class ConformalRegions:
         self.delta = delta
         self.cell_floor = cell_floor
         self.floor_delta = floor_delta
+        self.cell_ceiling = cell_ceiling
 
     def fit(self, scores: np.ndarray, classes: np.ndarray, distances: np.ndarray,
             all_classes: Sequence[Hashable] | None = None) -> ConformalRegions:
@@ -155,7 +158,8 @@ class ConformalRegions:
                     continue
                 own = _group(("class", c, b, b), *data, [], *storage)
                 self.groups_.append(dataclasses.replace(own, base=self.groups_[serving[c, b]],
-                                                        floor_delta=floor_delta))
+                                                        floor_delta=floor_delta,
+                                                        ceiling=bool(self.cell_ceiling)))
                 serving[c, b] = len(self.groups_) - 1
 
     def guarantees(self, levels: Sequence[float]) -> list[dict[str, Any]]:
@@ -266,7 +270,8 @@ class ConformalRegions:
                  "n_exact": self.n_exact, "max_ranks": self.max_ranks}
         # written only when set: regions fit without them keep their earlier JSON
         hyper.update({k: v for k, v in (("delta", self.delta), ("cell_floor", self.cell_floor),
-                                        ("floor_delta", self.floor_delta)) if v})
+                                        ("floor_delta", self.floor_delta),
+                                        ("cell_ceiling", self.cell_ceiling)) if v})
         index = {id(g): i for i, g in enumerate(self.groups_)}
         return to_jsonable({
             "hyper": hyper,
@@ -297,7 +302,8 @@ class ConformalRegions:
         self.groups_, delta = [], _check_delta(self.delta)
         floor_delta = _check_delta(self.floor_delta, "floor_delta")
         for i, g in enumerate(data["groups"]):
-            self.groups_.append(group_from_dict(i, g, self.groups_, delta, floor_delta))
+            self.groups_.append(group_from_dict(i, g, self.groups_, delta, floor_delta,
+                                                bool(self.cell_ceiling)))
         self.serving_ = np.asarray(data["serving"], dtype=np.int64)
         if (self.serving_.shape != (len(self.classes_) + 1, self.edges_.size - 1)
                 or (self.serving_ < 0).any() or (self.serving_ >= len(self.groups_)).any()):

@@ -17,6 +17,11 @@ at a level.
   are than the group's at the highest anchor level it can certify ("scaled"). Elsewhere the
   group's radius is served as it is ("pooled"): a floor on every cell would be the largest of
   a handful of scores in a small cell and over-cover it.
+- Cell ceilings (`ceiling`): the other side of the same test. Where a cell's scores show that
+  its group's radius covers more than q of it — fewer of them lie beyond it than a cell
+  covered at q leaves with probability `FLOOR_ALPHA` — and the cell holds enough scores for
+  its own split-conformal radius, the cell is served its own radius ("cell"): a narrow cell
+  pooled with wide ones (far buses with near ones) is otherwise covered far above q.
 - Tail floors (`floor_delta`): at levels >= `TAIL_FROM` a cell floor is served whatever the
   test says: the larger of its group's radius and its own training-conditional radius at
   `floor_delta` (or the group's radius widened as above where the cell is too small for that
@@ -64,7 +69,8 @@ class ConformalGroup:
     inclusive, `n` scores, and their order statistics `values [R]` at `ranks [R]`
     (1-based, increasing, always including n). `delta`: the PAC level (None: marginal).
     `base`: for a cell floor, the group that served the cell before; `floor_delta`: its tail
-    floor's PAC level (None: no tail floor; module docstring)."""
+    floor's PAC level (None: no tail floor); `ceiling`: whether the cell also takes its own
+    radius where the group's over-covers it (module docstring)."""
 
     label: Hashable | None
     bins: tuple[int, int]
@@ -74,6 +80,7 @@ class ConformalGroup:
     delta: float | None = None
     base: ConformalGroup | None = None
     floor_delta: float | None = None
+    ceiling: bool = False
 
     def own_radius(self, levels: np.ndarray, delta: float | None = None) -> np.ndarray:
         """Radii `[Q]` of this group's own scores at checked `levels [Q]`: the stored order
@@ -91,10 +98,15 @@ class ConformalGroup:
         if self.base is None:
             return own
         pooled = self.base.radius(levels)
-        served = np.where(self._floored(levels, pooled), self._floor(own, pooled), pooled)
+        capped = self._capped(levels, pooled, own)
+        served = np.where(self._floored(levels, pooled), self._floor(own, pooled),
+                          np.where(capped, own, pooled))
         if self.floor_delta is None:
             return served
-        return np.where(levels >= TAIL_FROM, self._floor(self._tail_own(levels), pooled), served)
+        tail_own = self._tail_own(levels)
+        tail = np.where(capped & np.isfinite(tail_own), np.maximum(tail_own, own),
+                        self._floor(tail_own, pooled))
+        return np.where(levels >= TAIL_FROM, tail, served)
 
     def _floor(self, own: np.ndarray, pooled: np.ndarray) -> np.ndarray:
         """The larger of the cell's `own` and its group's `pooled` radii `[Q]`; where its own
@@ -115,8 +127,10 @@ class ConformalGroup:
         "pooled" for merged bins or pooled classes, "marginal" for all scores) with its n."""
         if self.base is None:
             return [kind] * levels.size, [self.n] * levels.size
-        floored = self._floored(levels, self.base.radius(levels))
-        own = np.isfinite(self.own_radius(levels, self.delta))
+        pooled = self.base.radius(levels)
+        own_radius = self.own_radius(levels, self.delta)
+        floored = self._floored(levels, pooled) | self._capped(levels, pooled, own_radius)
+        own = np.isfinite(own_radius)
         if self.floor_delta is not None:
             tail = levels >= TAIL_FROM
             floored, own = floored | tail, np.where(tail, np.isfinite(self._tail_own(levels)), own)
@@ -135,12 +149,26 @@ class ConformalGroup:
 
     def _misses(self, levels: np.ndarray, pooled: np.ndarray) -> np.ndarray:
         """`[Q]` bool: this cell's scores beyond the `pooled` radii are too many for a cell
-        covered at `levels` (P(Binomial(n, 1 - q) >= beyond) < FLOOR_ALPHA). Counted from the
-        stored order statistics: exact up to `n_exact` scores, else at least as many."""
-        idx = np.searchsorted(self.values, pooled, side="right")
-        within = np.where(idx > 0, self.ranks[np.maximum(idx - 1, 0)], 0)
-        beyond = self.n - within
+        covered at `levels` (P(Binomial(n, 1 - q) >= beyond) < FLOOR_ALPHA)."""
+        beyond = self._beyond(pooled)
         return (beyond > 0) & (binom.sf(beyond - 1, self.n, 1.0 - levels) < FLOOR_ALPHA)
+
+    def _capped(self, levels: np.ndarray, pooled: np.ndarray, own: np.ndarray) -> np.ndarray:
+        """`[Q]` bool: with `ceiling`, this cell's scores beyond the `pooled` radii are too few
+        for a cell covered at `levels` (P(Binomial(n, 1 - q) <= beyond) < FLOOR_ALPHA) and its
+        `own` radius is finite."""
+        if not self.ceiling:
+            return np.zeros(levels.shape, dtype=bool)
+        return np.isfinite(own) & (binom.cdf(self._beyond(pooled), self.n, 1.0 - levels)
+                                   < FLOOR_ALPHA)
+
+    def _beyond(self, radii: np.ndarray) -> np.ndarray:
+        """`[Q]` how many of this cell's scores lie beyond `radii [Q]`, counted from the stored
+        order statistics: exact up to `n_exact` scores, else at least as many (so a floor may
+        come sooner, a ceiling only later, than the exact count gives)."""
+        idx = np.searchsorted(self.values, radii, side="right")
+        within = np.where(idx > 0, self.ranks[np.maximum(idx - 1, 0)], 0)
+        return self.n - within
 
     def _width(self) -> float:
         """How much wider this cell's scores are than its base group's (>= 1), at the highest
@@ -183,10 +211,10 @@ def group_to_dict(g: ConformalGroup, index: dict[int, int]) -> dict[str, Any]:
 
 
 def group_from_dict(i: int, g: dict[str, Any], groups: list[ConformalGroup],
-                    delta: float | None = None, floor_delta: float | None = None
-                    ) -> ConformalGroup:
+                    delta: float | None = None, floor_delta: float | None = None,
+                    ceiling: bool = False) -> ConformalGroup:
     """Group `i` from its JSON form; `groups` are the groups before it (a `base` is one); a
-    cell floor gets `floor_delta`."""
+    cell floor gets `floor_delta` and `ceiling`."""
     ranks = np.asarray(g["ranks"], dtype=np.int64)
     values = as_float_array(f"groups[{i}].values", g["values"], ndim=1)
     n = int(g["n"])
@@ -197,4 +225,4 @@ def group_from_dict(i: int, g: dict[str, Any], groups: list[ConformalGroup],
         raise ValueError(f"groups[{i}].base must index a group before it, got {base!r}")
     return ConformalGroup(g["class"], (int(g["bins"][0]), int(g["bins"][1])), n, ranks, values,
                           delta, None if base is None else groups[base],
-                          None if base is None else floor_delta)
+                          None if base is None else floor_delta, base is not None and ceiling)

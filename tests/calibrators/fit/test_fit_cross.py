@@ -75,7 +75,8 @@ def test_every_fit_true_positive_calibrates_and_sigma_is_fit_on_all():
     val = synthetic_dump(n_frames=120, seed=5)
     cross = fit_profile(val, cov_source="given", cov_method="shrinkage",
                         region_calibration="cross")
-    split = fit_profile(val, cov_source="given", cov_method="shrinkage")
+    split = fit_profile(val, cov_source="given", cov_method="shrinkage",
+                        region_calibration="split")
     on_all = fit_profile(val, cov_source="given", cov_method="shrinkage",
                          region_method="gaussian")
     selection = cross.report["selection"]["regions"]
@@ -118,7 +119,7 @@ def test_cross_radii_move_less_with_the_split_seed(test_cell):
 
 def test_split_profiles_are_as_before_and_cross_profiles_round_trip():
     val, test = synthetic_dump(n_frames=100, seed=7), synthetic_dump(n_frames=40, seed=8)
-    split = fit_profile(val, cov_source="given")
+    split = fit_profile(val, cov_source="given", region_calibration="split")
     assert set(split.regions) == {"method", "conformal"}   # what earlier versions wrote
     assert "calibration" not in split.report["selection"]["regions"]
     old = split.to_dict()
