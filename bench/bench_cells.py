@@ -146,14 +146,24 @@ def summary(s: Served, classes: tuple[str, ...], min_class: int) -> dict[str, fl
             "median 90 % r²": float(np.median(s.radii[:, LEVELS.index(0.9)] ** 2))}
 
 
-def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def held_out_parser(doc: str, label_help: str, seeds: bool = False) -> argparse.ArgumentParser:
+    """The arguments every held-out cell bench takes: `--val`, `--test`, (`--seeds`),
+    `--min-cell`, `--min-class`, `--label` (`label_help`); `doc`: the bench's docstring."""
+    ap = argparse.ArgumentParser(description=doc.split("\n\n")[0])
     ap.add_argument("--val", required=True, help="val dump to fit on")
     ap.add_argument("--test", required=True, help="held-out dump to measure on")
+    if seeds:
+        ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3],
+                        help="calibration-split seeds")
     ap.add_argument("--min-cell", type=int, default=200, help="test TPs a cell needs")
     ap.add_argument("--min-class", type=int, default=500, help="test TPs a class needs")
-    ap.add_argument("--label", help="write the figures to docs/benchmarks.md under this name")
-    args = ap.parse_args(argv)
+    ap.add_argument("--label", help=label_help)
+    return ap
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = held_out_parser(__doc__, "write the figures to docs/benchmarks.md under this "
+                           "name").parse_args(argv)
     val, test = load_dump(args.val), load_dump(args.test)
     rows, served = [], None
     for name, options in (("reference: without cell floors", FitOptions(cell_floors=False)),

@@ -22,14 +22,13 @@ over, per level) and how often the overall coverage is more than 1 pp from a lev
 
 from __future__ import annotations
 
-import argparse
 from collections import Counter
 from pathlib import Path
 
 import numpy as np
 
 from bench._report import write_section
-from bench.bench_cells import CELLS_DOC, CELLS_HEADER, LEVELS, Served, shortfalls
+from bench.bench_cells import CELLS_DOC, CELLS_HEADER, LEVELS, Served, held_out_parser, shortfalls
 from calibrators import FitOptions, fit_profile, load_dump, match_dump
 from calibrators.data import Dump
 from calibrators.fit import conformal_region_fit
@@ -59,8 +58,7 @@ def null_draw(rng: np.random.Generator, calib: tuple[np.ndarray, np.ndarray],
     labels, distances = calib
     fit = conformal_region_fit(rng.exponential(size=labels.size), labels, distances, n_classes,
                                options.min_group, options.distance_edges,
-                               cell_floor=options.cell_floors, delta=options.region_delta,
-                               floor_delta=options.floor_delta)
+                               **options.conformal_options())
     regions = ConformalRegions.from_dict(fit.conformal)
     radii = np.stack([regions.radius(q, *test) for q in LEVELS], axis=1)
     none = np.zeros(0)
@@ -76,15 +74,9 @@ def kind(line: str) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--val", required=True, help="val dump whose cell counts are used")
-    ap.add_argument("--test", required=True, help="held-out dump whose cells are judged")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3],
-                    help="calibration-split seeds (the draws cycle through them)")
+    ap = held_out_parser(__doc__, "write the table to docs/report/cells.md under this name",
+                         seeds=True)
     ap.add_argument("--draws", type=int, default=400, help="draws per radii calibration")
-    ap.add_argument("--min-cell", type=int, default=200, help="test TPs a cell needs")
-    ap.add_argument("--min-class", type=int, default=500, help="test TPs a class needs")
-    ap.add_argument("--label", help="write the table to docs/report/cells.md under this name")
     args = ap.parse_args(argv)
     val, test = load_dump(args.val), load_dump(args.test)
     tp = np.asarray(match_dump(test).tp, dtype=bool)

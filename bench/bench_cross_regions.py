@@ -14,13 +14,21 @@ written to docs/report/cells.md as section `cross <label>`.
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import numpy as np
 
 from bench._report import write_section
-from bench.bench_cells import CELLS_DOC, CELLS_HEADER, LEVELS, Served, serve, shortfalls, summary
+from bench.bench_cells import (
+    CELLS_DOC,
+    CELLS_HEADER,
+    LEVELS,
+    Served,
+    held_out_parser,
+    serve,
+    shortfalls,
+    summary,
+)
 from calibrators import FitOptions, load_dump
 
 CALIBRATIONS = ("split", "cross")
@@ -43,15 +51,8 @@ def seed_range(per_seed: list[np.ndarray]) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--val", required=True, help="val dump to fit on")
-    ap.add_argument("--test", required=True, help="held-out dump to measure on")
-    ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2, 3],
-                    help="calibration-split seeds")
-    ap.add_argument("--min-cell", type=int, default=200, help="test TPs a cell needs")
-    ap.add_argument("--min-class", type=int, default=500, help="test TPs a class needs")
-    ap.add_argument("--label", help="write the table to docs/report/cells.md under this name")
-    args = ap.parse_args(argv)
+    args = held_out_parser(__doc__, "write the table to docs/report/cells.md under this name",
+                           seeds=True).parse_args(argv)
     val, test = load_dump(args.val), load_dump(args.test)
     rows, spread = [], {}
     for calibration in CALIBRATIONS:

@@ -191,10 +191,11 @@ def _honest_overview(reports: Sequence[SensorReport]) -> str:
 CELLS_LINK = ("Per class × distance cell, with sampling intervals, on 3,000 scenes of the "
               "`holdout` split that no fit or choice used: [cells.md](cells.md), written by "
               "`bench/bench_cells.py --label` (the commands are in its docstring). Its "
-              "sections `cross <sensor> holdout` set the default split-conformal radii "
-              "against cross-fitted ones (`region_calibration=cross`: every val frame "
-              "calibrates) over four calibration-split seeds, written by "
-              "`bench/bench_cross_regions.py --label`.")
+              "sections `cross <sensor> holdout` set the default cross-fitted radii (every "
+              "val frame calibrates) against split-conformal ones over four "
+              "calibration-split seeds (`bench/bench_cross_regions.py --label`), and its "
+              "sections `null <sensor> holdout` show what an exactly calibrated method "
+              "leaves under the same criterion (`bench/bench_cells_null.py --label`).")
 
 
 def _levels(values: Sequence[float]) -> str:
