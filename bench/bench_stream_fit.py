@@ -131,9 +131,13 @@ def table(n: int, gen_s: float, disk_gb: float, parts: int, streamed: dict, s_wa
     p = streamed["profile"]
     scaling = (p.get("covariance_scaling") or {}).get("method", "depth")
     score = (p.get("score_calibration") or {}).get("method", "temperature")
-    stages = (f"{score}, {scaling} chosen on the calibration part, conformal regions fit on "
-              f"{p['provenance']['n_calibration_frames']:,} calibration frames; with "
-              f"shrinkage the k below are those of s·Σ + k·d·I, not the generating k"
+    cross = (p.get("regions") or {}).get("calibration") == "cross"
+    radii = ("cross-fitted on every fit frame (a second pass)" if cross else
+             f"fit on {p['provenance']['n_calibration_frames']:,} calibration frames")
+    stages = (f"{score}, {scaling} chosen on the calibration part of "
+              f"{p['provenance']['n_calibration_frames']:,} frames, conformal regions "
+              f"{radii}; with shrinkage the k below are those of s·Σ + k·d·I, not the "
+              f"generating k"
               if (p.get("regions") or {}).get("method") == "conformal"
               else "temperature, depth, gaussian")
     k_err = {c: p["depth_k"][c] / K_TRUE[c] - 1 for c in K_TRUE}
