@@ -164,11 +164,11 @@ def fit_profile_stream(path: Any, options: FitOptions | None = None, *, client: 
     report_progress("regions", 0.5)
     if opts.region_calibration == "cross" and tps is not None and opts.region_method != \
             "gaussian":   # radii on every fit true positive: a second pass (_stream_cross)
-        refit = {s: [refit_covariance(ds.classes, s, firsts, tps, opts, covs[s].method, w)
-                     for w in (False, True)] for s in sources}
-        covs, regions = stream_cross_regions(ds.classes, opts, covs, {
-            s: r[0] for s, r in refit.items()}, {s: r[1] for s, r in refit.items()}, tps,
-            chunks, mapper)
+        on_calib, on_all = ({s: refit_covariance(ds.classes, s, firsts, tps, opts,
+                                                 covs[s].method, whole) for s in sources}
+                            for whole in (False, True))
+        covs, regions = stream_cross_regions(ds.classes, opts, covs, on_calib, on_all, tps,
+                                             chunks, mapper)
     else:
         regions = stream_regions(ds.classes, opts, covs, tps)
     provenance = make_provenance(

@@ -26,7 +26,8 @@ from calibrators.fit._options import FitOptions
 from calibrators.fit._region_stage import CovarianceFit, RegionFit, region_fit_of_scores
 from calibrators.regions import xy_mahalanobis
 
-__all__ = ["served_covariances", "stream_cross_regions", "training_scores"]
+__all__ = ["calibration_scores", "served_covariances", "stream_cross_regions",
+           "training_scores"]
 
 Scores = tuple[np.ndarray, np.ndarray, np.ndarray]
 
@@ -42,6 +43,16 @@ def served_covariances(part: CalibrationTPs, source: str, cov: CovarianceFit,
         base = base * np.array([cov.scale[c] for c in classes])[part.labels][:, None, None]
     k = np.array([cov.depth_k[c] for c in classes])[part.labels]
     return add_depth_term(base, part.distances, k)
+
+
+def calibration_scores(tps: list[CalibrationTPs], source: str, cov: CovarianceFit,
+                       classes: tuple[str, ...], dims: tuple[str, ...]) -> Scores:
+    """The Mahalanobis scores (x, y block), class indices and distances `[M]` of the
+    calibration true positives `tps` (per part, joined in order) under `cov`'s Σ' of
+    `source`, computed part by part."""
+    return (np.concatenate([xy_mahalanobis(p.residuals, served_covariances(
+                p, source, cov, classes, dims), dims) for p in tps]),
+            np.concatenate([p.labels for p in tps]), np.concatenate([p.distances for p in tps]))
 
 
 def training_scores(chunk: Chunk, covs: dict[str, CovarianceFit], classes: tuple[str, ...]
@@ -78,11 +89,9 @@ def stream_cross_regions(classes: tuple[str, ...], opts: FitOptions,
     train = list(mapper.imap(training_scores, chunks, covs=on_calib, classes=classes))
     out_covs, out_regions = {}, {}
     for source, cov in covs.items():
-        calib = [(xy_mahalanobis(p.residuals, served_covariances(p, source, cov, classes,
-                                                                 opts.dims), opts.dims),
-                  p.labels, p.distances) for p in tps]
+        calib = calibration_scores(tps, source, cov, classes, opts.dims)
         pooled = tuple(np.concatenate(arrays) for arrays in zip(
-            *calib, *(part[source] for part in train), strict=True))
+            calib, *(part[source] for part in train), strict=True))
         out_regions[source] = region_fit_of_scores(
             pooled, len(classes), opts.region_method, opts.min_group, opts.distance_edges,
             **opts.conformal_options(), calibration="cross")

@@ -22,13 +22,12 @@ from calibrators.fit._pipeline import has_calibration_part
 from calibrators.fit._region_stage import (
     CovarianceFit,
     RegionFit,
-    conformal_region_fit,
     covariance_fit,
     make_scaler,
+    region_fit_of_scores,
     regression_nll_or_none,
 )
-from calibrators.fit._stream_cross import served_covariances
-from calibrators.regions import xy_mahalanobis
+from calibrators.fit._stream_cross import calibration_scores
 
 __all__ = ["calibration_frames", "refit_covariance", "stream_covariance", "stream_regions"]
 
@@ -52,27 +51,15 @@ def stream_regions(classes: tuple[str, ...], opts: FitOptions, covs: dict[str, C
     conformal on the calibration part's true positives (`tps`, per part) under the fitted Σ'
     (gaussian without a calibration part, or with `auto` and fewer than `min_group` of them).
     The scores are computed part by part: only they, the classes and distances are whole."""
-    n = 0 if tps is None else sum(len(p.labels) for p in tps)
-    out = {}
-    for source, cov in covs.items():
-        method = "gaussian" if tps is None else opts.region_method
-        if "x" not in opts.dims or "y" not in opts.dims:
-            out[source] = None   # no ellipse to serve
-            continue
-        if method == "gaussian" or (method == "auto" and n < opts.min_group):
-            out[source] = RegionFit("gaussian", None, n)
-            continue
-        if tps is None or n == 0:
-            raise ValueError("region_method='conformal' needs a calibration part with true "
-                             "positives (calibration > 0)")
-        scores = np.concatenate([xy_mahalanobis(p.residuals, served_covariances(
-                                     p, source, cov, classes, opts.dims), opts.dims)
-                                 for p in tps])
-        out[source] = conformal_region_fit(
-            scores, np.concatenate([p.labels for p in tps]),
-            np.concatenate([p.distances for p in tps]), len(classes), opts.min_group,
-            opts.distance_edges, **opts.conformal_options())
-    return out
+    if "x" not in opts.dims or "y" not in opts.dims:   # no ellipse to serve
+        return dict.fromkeys(covs)
+    method = "gaussian" if tps is None else opts.region_method
+    return {source: region_fit_of_scores(
+                None if tps is None else calibration_scores(tps, source, cov, classes,
+                                                            opts.dims),
+                len(classes), method, opts.min_group, opts.distance_edges,
+                **opts.conformal_options())
+            for source, cov in covs.items()}
 
 
 def stream_covariance(classes: tuple[str, ...], source: str, firsts: list[FirstPass],
